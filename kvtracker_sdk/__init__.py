@@ -1,0 +1,111 @@
+"""kvtracker-sdk: real-time monocular camera and object tracking with KV-cached transformers.
+
+``import kvtracker_sdk`` is cheap: errors, value types and configuration load eagerly; everything
+that pulls in torch, onnxruntime or OpenCV loads on first attribute access (PEP 562).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from kvtracker_sdk._version import __version__
+from kvtracker_sdk.errors import (
+    BackendError,
+    BackendMismatchError,
+    BBoxError,
+    CacheError,
+    CheckpointMismatchError,
+    ConfigError,
+    IllegalTransitionError,
+    ImageDtypeError,
+    ImageShapeError,
+    InputError,
+    KVTrackerError,
+    MapCorruptedError,
+    MapError,
+    MapFormatError,
+    MapModelMismatchError,
+    MapVersionError,
+    MaskError,
+    MissingDependencyError,
+    ModelError,
+    NonFiniteImageError,
+    ResolutionChangedError,
+    StateError,
+    WeightsNotFoundError,
+)
+from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.types import FrameResult, HeadSet, MapStatus, Pose, StateReason, TrackingState
+
+if TYPE_CHECKING:  # pragma: no cover
+    from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
+    from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+    from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+
+# public name -> module that defines it (loaded lazily)
+_LAZY: dict[str, str] = {
+    "Backend": "kvtracker_sdk.backends.base",
+    "BackendInfo": "kvtracker_sdk.backends.base",
+    "MapResult": "kvtracker_sdk.backends.base",
+    "TrackResult": "kvtracker_sdk.backends.base",
+    "CacheLayout": "kvtracker_sdk.cache.kv_cache",
+    "KVCache": "kvtracker_sdk.cache.kv_cache",
+    "Keyframe": "kvtracker_sdk.cache.keyframe_map",
+    "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
+}
+
+__all__ = [
+    "BBoxError",
+    "Backend",
+    "BackendError",
+    "BackendInfo",
+    "BackendMismatchError",
+    "CacheError",
+    "CacheLayout",
+    "CheckpointMismatchError",
+    "ConfigError",
+    "FrameResult",
+    "HeadSet",
+    "IllegalTransitionError",
+    "ImageDtypeError",
+    "ImageShapeError",
+    "InputError",
+    "KVCache",
+    "KVTrackerError",
+    "Keyframe",
+    "KeyframeMap",
+    "MapCorruptedError",
+    "MapError",
+    "MapFormatError",
+    "MapModelMismatchError",
+    "MapResult",
+    "MapStatus",
+    "MapVersionError",
+    "MaskError",
+    "MissingDependencyError",
+    "ModelError",
+    "NonFiniteImageError",
+    "Pose",
+    "ResolutionChangedError",
+    "Sim3",
+    "StateError",
+    "StateReason",
+    "TrackResult",
+    "TrackingState",
+    "WeightsNotFoundError",
+    "__version__",
+]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'kvtracker_sdk' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # cache: later lookups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

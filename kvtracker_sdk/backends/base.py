@@ -1,0 +1,119 @@
+"""The ``Backend`` contract: what the tracker needs from a network, and nothing more.
+
+A backend is stateless with respect to the map. It turns keyframe images into a map (poses in the
+pass's own raw frame, per-pixel confidence and points, and a ``KVCache``), and tracks one image
+against a cache. Images arrive already at the model resolution (``backends/preprocess.py``), as
+uint8 RGB [N, H, W, 3] — the same bytes a map file stores, so a rebuild after reloading a map sees
+exactly what the original mapping saw.
+
+Two backends whose ``info.fingerprint`` and ``info.layout`` agree compute the same function, so a
+cache made by one can be used by the other (live backend swap; maps saved by one, loaded by the
+other). The fingerprint hashes the model family, its configuration and its weights — not the
+runtime (torch/onnx), device or dtype.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+from kvtracker_sdk.types import HeadSet
+
+__all__ = ["Backend", "BackendInfo", "MapResult", "TrackResult"]
+
+
+@dataclass(frozen=True)
+class BackendInfo:
+    """Identity and properties of a backend."""
+
+    backend: str  # runtime: "torch", "onnx", "simulated"
+    model: str  # e.g. "pi3", "da3-small", "pi3-custom"
+    family: str  # "pi3", "da3", "simulated": caches never cross families
+    config_hash: str  # hash of the architecture configuration
+    weights_fingerprint: str  # hash of the weights (content, not path)
+    patch_size: int
+    extra_tokens_per_frame: int  # tokens per frame besides the patches (Pi3: 5 registers)
+    layout: CacheLayout
+    dtype: str  # compute / cache dtype, e.g. "float32", "bfloat16"
+    device: str = "cpu"
+    accelerations: tuple[str, ...] = ()  # optional fast paths detected at construction
+
+    @property
+    def fingerprint(self) -> str:
+        """Identity of the function computed: family + config + weights (16 hex chars)."""
+        text = f"{self.family}|{self.config_hash}|{self.weights_fingerprint}"
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def tokens_per_frame(self, height: int, width: int) -> int:
+        return self.extra_tokens_per_frame + (height // self.patch_size) * (width // self.patch_size)
+
+
+def _readonly(array: np.ndarray | None) -> np.ndarray | None:
+    if array is not None:
+        array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True)
+class MapResult:
+    """A mapping pass over N keyframes, in the pass's own raw world frame and scale."""
+
+    poses: np.ndarray  # [N, 4, 4] float64 T_world_cam, raw frame of this pass
+    confidence: np.ndarray  # [N, H, W] float32 in [0, 1]
+    local_points: np.ndarray  # [N, H, W, 3] float32, camera frame (OpenCV axes), raw scale
+    cache: KVCache
+    timings_ms: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for array in (self.poses, self.confidence, self.local_points):
+            _readonly(array)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.poses.shape[0])
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """One frame tracked against a cache, in the cache's raw frame."""
+
+    pose: np.ndarray  # [4, 4] float64 T_world_cam
+    confidence: float | None  # mean per-pixel confidence in [0, 1]; None if not computed
+    confidence_map: np.ndarray | None = None  # [H, W] float32 in [0, 1]
+    local_points: np.ndarray | None = None  # [H, W, 3] float32 camera frame
+    timings_ms: Mapping[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for array in (self.pose, self.confidence_map, self.local_points):
+            _readonly(array)
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """What every backend (torch, onnx, simulated) implements."""
+
+    @property
+    def info(self) -> BackendInfo: ...
+
+    def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
+        """Mapping pass with full attention over ``images`` uint8 [N, H, W, 3].
+
+        ``masks`` (bool [N, H, W]) are advisory: backends may use them, the tracker uses them
+        for confidence summaries. Poses come back in the pass's own raw frame.
+        """
+        ...
+
+    def track(
+        self, image: np.ndarray, cache: KVCache, *, heads: HeadSet = HeadSet.CONFIDENCE
+    ) -> TrackResult:
+        """Track one image uint8 [H, W, 3] against ``cache`` (its global attention reads it)."""
+        ...
+
+    def close(self) -> None:
+        """Release resources (threads, sessions). Idempotent."""
+        ...

@@ -1,0 +1,169 @@
+"""The one exception tree of kvtracker-sdk.
+
+Every error the SDK raises on purpose derives from :class:`KVTrackerError`, so an app can catch
+the whole family with one ``except``. Third-party exceptions are re-raised as one of these with
+``raise ... from exc`` (the habit of ``httpx/_exceptions.py``).
+
+Losing track is *not* an exception: it is a state in the frame result. Exceptions are for misuse
+and bad input, and a raised input error leaves the tracker and its map untouched.
+
+    KVTrackerError
+    ├── ConfigError                      invalid configuration values
+    ├── InputError                       a frame, mask or bbox the tracker cannot use
+    │   ├── ImageShapeError
+    │   ├── ImageDtypeError
+    │   ├── NonFiniteImageError
+    │   ├── MaskError
+    │   ├── BBoxError
+    │   └── ResolutionChangedError
+    ├── StateError                       call not allowed in the current state (closed tracker, ...)
+    │   └── IllegalTransitionError       a transition missing from the state table (a bug)
+    ├── ModelError
+    │   ├── WeightsNotFoundError         weights not found / hub unreachable (says how to pass a file)
+    │   └── CheckpointMismatchError      missing / unexpected / wrongly shaped keys (lists them)
+    ├── CacheError                       KV cache misuse (layout, capacity, unknown keyframe)
+    ├── BackendError
+    │   ├── BackendMismatchError         fingerprints or cache layouts disagree
+    │   └── MissingDependencyError       an optional extra is not installed (names it)
+    └── MapError                         map files (``.kvmap``)
+        ├── MapFormatError               not a map file / malformed header
+        ├── MapVersionError              format too old or too new
+        ├── MapModelMismatchError        made by another model, family or resolution
+        └── MapCorruptedError            checksum or size mismatch in the tensor data
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BBoxError",
+    "BackendError",
+    "BackendMismatchError",
+    "CacheError",
+    "CheckpointMismatchError",
+    "ConfigError",
+    "IllegalTransitionError",
+    "ImageDtypeError",
+    "ImageShapeError",
+    "InputError",
+    "KVTrackerError",
+    "MapCorruptedError",
+    "MapError",
+    "MapFormatError",
+    "MapModelMismatchError",
+    "MapVersionError",
+    "MaskError",
+    "MissingDependencyError",
+    "ModelError",
+    "NonFiniteImageError",
+    "ResolutionChangedError",
+    "StateError",
+    "WeightsNotFoundError",
+]
+
+
+class KVTrackerError(Exception):
+    """Base class of every error raised by kvtracker-sdk."""
+
+
+class ConfigError(KVTrackerError, ValueError):
+    """A configuration value is invalid or inconsistent."""
+
+
+class InputError(KVTrackerError, ValueError):
+    """A frame, mask or box cannot be used. The tracker and its map are left untouched."""
+
+
+class ImageShapeError(InputError):
+    """The image is not HxWx3 (or is too small for the model)."""
+
+
+class ImageDtypeError(InputError):
+    """The image dtype is not uint8 or a float type in [0, 1]."""
+
+
+class NonFiniteImageError(InputError):
+    """The image contains NaN or infinite values."""
+
+
+class MaskError(InputError):
+    """The mask has the wrong shape or dtype, or selects no pixel."""
+
+
+class BBoxError(InputError):
+    """The bounding box is malformed or lies outside the image."""
+
+
+class ResolutionChangedError(InputError):
+    """The image size changed in the middle of a session."""
+
+
+class StateError(KVTrackerError, RuntimeError):
+    """The call is not allowed in the tracker's current state."""
+
+
+class IllegalTransitionError(StateError):
+    """A state transition that the transition table does not contain (always a bug)."""
+
+
+class ModelError(KVTrackerError):
+    """A model could not be built or loaded."""
+
+
+class WeightsNotFoundError(ModelError, FileNotFoundError):
+    """Weights could not be found locally nor downloaded."""
+
+
+class CheckpointMismatchError(ModelError):
+    """A checkpoint's keys or shapes do not match the model.
+
+    ``missing``, ``unexpected`` and ``shape_mismatches`` list the offending keys.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        missing: list[str] | None = None,
+        unexpected: list[str] | None = None,
+        shape_mismatches: list[tuple[str, tuple[int, ...], tuple[int, ...]]] | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.missing = list(missing or [])
+        self.unexpected = list(unexpected or [])
+        self.shape_mismatches = list(shape_mismatches or [])
+
+
+class CacheError(KVTrackerError, ValueError):
+    """The KV cache was used inconsistently (layout, capacity, unknown keyframe)."""
+
+
+class BackendError(KVTrackerError):
+    """A backend failed or cannot serve the request."""
+
+
+class BackendMismatchError(BackendError):
+    """Two backends (or a backend and a cache/map) have different fingerprints or layouts."""
+
+
+class MissingDependencyError(BackendError, ImportError):
+    """An optional dependency is missing; the message names the extra to install."""
+
+
+class MapError(KVTrackerError):
+    """Base class of map-file errors."""
+
+
+class MapFormatError(MapError):
+    """The file is not a kvtracker map, or its header is malformed."""
+
+
+class MapVersionError(MapError):
+    """The map's format version is not supported by this SDK (too old or too new)."""
+
+
+class MapModelMismatchError(MapError):
+    """The map was made by another model, model family or resolution than the backend's."""
+
+
+class MapCorruptedError(MapError):
+    """The map's tensor data does not match its checksums or declared sizes."""

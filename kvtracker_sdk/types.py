@@ -1,0 +1,164 @@
+"""Plain value types shared by every layer: poses, states, per-frame results.
+
+Pose convention everywhere in the SDK: a 4x4 ``T_world_cam`` (camera-to-world) in float64, with
+OpenCV camera axes (x right, y down, z forward). Quaternions appear only through the explicitly
+named ``as_quat_xyzw`` / ``as_quat_wxyz`` accessors.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from kvtracker_sdk.geometry.se3 import (
+    check_rigid,
+    quat_wxyz_from_rotation,
+    quat_xyzw_from_rotation,
+)
+
+__all__ = [
+    "FrameResult",
+    "HeadSet",
+    "MapStatus",
+    "Pose",
+    "StateReason",
+    "TrackingState",
+]
+
+
+class TrackingState(str, enum.Enum):
+    """What the app can rely on (see the state table in ``tracking/states.py``)."""
+
+    INIT = "INIT"  # no map (new, or after reset())
+    MAPPING = "MAPPING"  # the first map is being built; no localisation yet
+    TRACKING = "TRACKING"  # localised against the map; pose valid
+    RELOCALIZING = "RELOCALIZING"  # a map exists but the current pose is not trusted
+
+
+class StateReason(str, enum.Enum):
+    """Why the tracker is in its current state."""
+
+    NONE = "NONE"
+    BOOTSTRAP = "BOOTSTRAP"  # first map being built / just built
+    LOW_CONFIDENCE = "LOW_CONFIDENCE"  # tracking confidence dropped for `lost_after` frames
+    MAP_LOADED = "MAP_LOADED"  # a saved map was loaded; waiting for confident frames
+    RELOCALIZED = "RELOCALIZED"  # confident again for `recover_after` frames
+    RESET = "RESET"  # reset() was called
+    TIMEOUT = "TIMEOUT"  # relocalisation timed out and the policy acted
+    NEW_MAP = "NEW_MAP"  # relocalisation timed out and a new map was started
+
+
+class HeadSet(str, enum.Enum):
+    """Which output heads a tracking pass computes (fewer heads, faster step)."""
+
+    CAMERA = "camera"  # pose only: the fastest step; no confidence, so no loss detection
+    CONFIDENCE = "camera+conf"  # pose and per-pixel confidence (the tracker's default)
+    ALL = "all"  # pose, confidence and local points
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid camera pose ``T_world_cam`` (camera-to-world, OpenCV axes), float64.
+
+    The matrix is copied and made read-only on construction, so a Pose can be shared across
+    threads and stored in events without anyone mutating it.
+    """
+
+    T_world_cam: np.ndarray
+
+    def __post_init__(self) -> None:
+        matrix = np.array(self.T_world_cam, dtype=np.float64, copy=True)
+        if matrix.shape != (4, 4):
+            raise ValueError(f"T_world_cam must be 4x4, got shape {matrix.shape}")
+        matrix.setflags(write=False)
+        object.__setattr__(self, "T_world_cam", matrix)
+
+    @classmethod
+    def identity(cls) -> Pose:
+        return cls(np.eye(4))
+
+    @classmethod
+    def from_rt(cls, rotation: np.ndarray, translation: np.ndarray) -> Pose:
+        matrix = np.eye(4)
+        matrix[:3, :3] = rotation
+        matrix[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+        return cls(matrix)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """3x3 rotation of the camera in the world frame (read-only view)."""
+        return self.T_world_cam[:3, :3]
+
+    @property
+    def translation(self) -> np.ndarray:
+        """Camera centre in world coordinates (read-only view)."""
+        return self.T_world_cam[:3, 3]
+
+    def as_quat_xyzw(self) -> np.ndarray:
+        """Rotation as a unit quaternion, scalar last (ROS, SciPy, TUM files)."""
+        return quat_xyzw_from_rotation(self.rotation)
+
+    def as_quat_wxyz(self) -> np.ndarray:
+        """Rotation as a unit quaternion, scalar first (Eigen, ARKit's simd_quatf order)."""
+        return quat_wxyz_from_rotation(self.rotation)
+
+    def inverse(self) -> Pose:
+        """``T_cam_world`` as a Pose."""
+        R = self.rotation
+        out = np.eye(4)
+        out[:3, :3] = R.T
+        out[:3, 3] = -R.T @ self.translation
+        return Pose(out)
+
+    def is_rigid(self, atol: float = 1e-6) -> bool:
+        return check_rigid(self.T_world_cam, atol=atol)
+
+
+@dataclass(frozen=True)
+class MapStatus:
+    """A snapshot of the tracker's map."""
+
+    num_keyframes: int
+    cache_bytes: int
+    generation: int  # increments on every accepted map rebuild (or load)
+    rebuilding: bool  # a rebuild is running (asynchronous mapping)
+    keyframe_ids: tuple[int, ...] = ()
+
+
+def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:
+    return MappingProxyType(dict(values or {}))
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What ``Tracker.push_frame`` returns for one frame.
+
+    ``pose`` is the frame's ``T_world_cam`` in the tracker's world frame; it is None when there is
+    no map yet, and flagged by ``pose_valid=False`` while relocalising. ``timings_ms`` holds the
+    per-stage wall times (preprocess, track, map, total, ...).
+    """
+
+    frame_index: int
+    timestamp: float | None
+    state: TrackingState
+    reason: StateReason
+    pose: Pose | None
+    pose_valid: bool
+    confidence: float | None
+    keyframe_id: int | None = None
+    map_generation: int = 0
+    timings_ms: Mapping[str, float] = field(default_factory=dict)
+    extras: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "timings_ms", _frozen_mapping(self.timings_ms))
+        object.__setattr__(self, "extras", MappingProxyType(dict(self.extras)))
+
+    @property
+    def is_keyframe(self) -> bool:
+        return self.keyframe_id is not None
