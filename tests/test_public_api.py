@@ -1,0 +1,53 @@
+"""The public surface: a pinned ``__all__``, lazy heavy imports, one exception tree."""
+
+from __future__ import annotations
+
+import inspect
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import kvtracker_sdk
+from kvtracker_sdk import errors
+
+
+def test_all_names_resolve() -> None:
+    for name in kvtracker_sdk.__all__:
+        assert getattr(kvtracker_sdk, name) is not None, name
+
+
+def test_every_error_derives_from_the_root() -> None:
+    classes = [c for _, c in inspect.getmembers(errors, inspect.isclass) if issubclass(c, Exception)]
+    assert len(classes) > 10
+    for cls in classes:
+        assert issubclass(cls, errors.KVTrackerError), cls
+
+
+def test_import_is_cheap() -> None:
+    code = "import sys, kvtracker_sdk; print(any(m in sys.modules for m in ('torch', 'cv2', 'onnxruntime')))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_library_is_silent_by_default() -> None:
+    code = (
+        "from kvtracker_sdk.log import get_logger\n"
+        "get_logger('test').warning('should not print', x=1)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout == "" and out.stderr == ""
+
+
+def test_pose_is_immutable_and_exposes_named_quaternions() -> None:
+    T = np.eye(4)
+    T[:3, 3] = [1, 2, 3]
+    pose = kvtracker_sdk.Pose(T)
+    T[0, 3] = 99  # the pose copied its input
+    assert pose.translation.tolist() == [1, 2, 3]
+    with pytest.raises(ValueError):
+        pose.T_world_cam[0, 0] = 2
+    np.testing.assert_allclose(pose.as_quat_xyzw(), [0, 0, 0, 1])
+    np.testing.assert_allclose(pose.as_quat_wxyz(), [1, 0, 0, 0])
+    np.testing.assert_allclose(pose.inverse().translation, [-1, -2, -3])
