@@ -15,7 +15,10 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   ├── NonFiniteImageError
     │   ├── MaskError
     │   ├── BBoxError
-    │   └── ResolutionChangedError
+    │   ├── ResolutionChangedError
+    │   ├── SourceError                  an image source (folder, video, dataset) cannot be read
+    │   ├── TrajectoryError              a trajectory file or pose array is malformed
+    │   └── EvaluationError              trajectories cannot be compared (no matches, too short)
     ├── StateError                       call not allowed in the current state (closed tracker, ...)
     │   └── IllegalTransitionError       a transition missing from the state table (a bug)
     ├── ModelError
@@ -29,7 +32,8 @@ and bad input, and a raised input error leaves the tracker and its map untouched
         ├── MapFormatError               not a map file / malformed header
         ├── MapVersionError              format too old or too new
         ├── MapModelMismatchError        made by another model, family or resolution
-        └── MapCorruptedError            checksum or size mismatch in the tensor data
+        ├── MapCorruptedError            checksum or size mismatch in the tensor data
+        └── MapIOError                   the file cannot be read or written (missing, disk full)
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ __all__ = [
     "CacheError",
     "CheckpointMismatchError",
     "ConfigError",
+    "EvaluationError",
     "IllegalTransitionError",
     "ImageDtypeError",
     "ImageShapeError",
@@ -49,6 +54,7 @@ __all__ = [
     "MapCorruptedError",
     "MapError",
     "MapFormatError",
+    "MapIOError",
     "MapModelMismatchError",
     "MapVersionError",
     "MaskError",
@@ -56,7 +62,9 @@ __all__ = [
     "ModelError",
     "NonFiniteImageError",
     "ResolutionChangedError",
+    "SourceError",
     "StateError",
+    "TrajectoryError",
     "WeightsNotFoundError",
 ]
 
@@ -95,6 +103,18 @@ class BBoxError(InputError):
 
 class ResolutionChangedError(InputError):
     """The image size changed in the middle of a session."""
+
+
+class SourceError(InputError):
+    """An image source cannot be opened or read (missing path, bad list file, undecodable frame)."""
+
+
+class TrajectoryError(InputError):
+    """A trajectory file or pose array is malformed (columns, non-finite values, lengths)."""
+
+
+class EvaluationError(InputError):
+    """Two trajectories cannot be compared (no matching stamps, too few poses for the metric)."""
 
 
 class StateError(KVTrackerError, RuntimeError):
@@ -167,3 +187,7 @@ class MapModelMismatchError(MapError):
 
 class MapCorruptedError(MapError):
     """The map's tensor data does not match its checksums or declared sizes."""
+
+
+class MapIOError(MapError, OSError):
+    """A map file cannot be read or written (missing, permission denied, disk full)."""

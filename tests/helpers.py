@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -20,3 +22,17 @@ def shared_path(*parts: str) -> Path:
             pytest.fail(message + " (CI=true: this is a failure, not a skip)")
         pytest.skip(message)
     return path
+
+
+def dev_dependency(module: str) -> ModuleType:
+    """Import a development-only dependency (evo, plyfile); skip without it, fail under CI=true.
+
+    CI installs the ``[dev]`` extra, so a missing module there is a broken install, and the
+    cross-checks that need it must not go green by skipping.
+    """
+    if os.environ.get("CI", "").lower() == "true":
+        try:
+            return importlib.import_module(module)
+        except ImportError as exc:
+            pytest.fail(f"{module} is missing under CI=true (is it in the [dev] extra?): {exc}")
+    return pytest.importorskip(module)

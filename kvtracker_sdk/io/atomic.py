@@ -1,0 +1,84 @@
+"""Atomic file writes: a saved file is either the old one or the complete new one, never half.
+
+Every writer in ``io/`` goes through :func:`atomic_write`: the data goes to a temporary file in
+the target's directory (so ``os.replace`` stays on one filesystem and is atomic), is flushed and
+fsync'ed, and only then replaces the target. A crash or an exception mid-write leaves the
+previous file untouched and removes the temporary one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = ["atomic_path", "atomic_write"]
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike[str], *, binary: bool = False) -> Iterator[IO[Any]]:
+    """Yield a file handle whose content replaces ``path`` when the ``with`` block succeeds.
+
+    Text mode writes UTF-8 with ``\\n`` line endings; ``binary=True`` yields a bytes handle.
+    The parent directory must exist.
+    """
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.{secrets.token_hex(6)}.tmp")
+    # os.open with 0o666 lets the umask decide the final permissions, as for a plain open();
+    # tempfile.mkstemp would leave the saved file readable by its owner only.
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        handle = (
+            os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n")
+        )
+        with handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_directory(target.parent)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` for writers that take a file name, not a handle
+    (safetensors' ``save_file`` writes straight from tensor memory, without a bytes copy).
+
+    When the block succeeds the file is fsync'ed and replaces ``path``; on any exception it is
+    removed. The temporary name is hidden and ends in ``.tmp``, never in the target's suffix.
+    """
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.{secrets.token_hex(6)}.tmp")
+    os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # reserve; umask applies
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDWR)  # reopened: the writer may have recreated the file
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    _fsync_directory(target.parent)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make a completed ``os.replace`` durable: POSIX records a rename with the directory."""
+    if os.name != "posix":
+        return
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:  # some filesystems refuse directory fsync; the replace itself has happened
+        pass

@@ -1,0 +1,41 @@
+"""Atomic writes: the target is the old file or the complete new one, never a partial one."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from kvtracker_sdk.io.atomic import atomic_write
+
+
+def test_text_and_binary_writes_replace_the_target(tmp_path: Path) -> None:
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with atomic_write(target) as handle:
+        handle.write("new\n")
+        assert target.read_text() == "old"  # nothing visible before the block ends
+    assert target.read_text() == "new\n"
+    with atomic_write(tmp_path / "out.bin", binary=True) as handle:
+        handle.write(b"\x00\x01")
+    assert (tmp_path / "out.bin").read_bytes() == b"\x00\x01"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.bin", "out.txt"]
+
+
+def test_an_error_mid_write_keeps_the_old_file_and_cleans_up(tmp_path: Path) -> None:
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError, match="disk full"), atomic_write(target) as handle:
+        handle.write("half of the new conte")
+        raise RuntimeError("disk full")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]  # the temporary file is gone
+
+
+def test_permissions_follow_the_umask_like_a_plain_open(tmp_path: Path) -> None:
+    with atomic_write(tmp_path / "atomic.txt") as handle:
+        handle.write("x")
+    (tmp_path / "plain.txt").write_text("x")
+    mode = os.stat(tmp_path / "atomic.txt").st_mode & 0o777
+    assert mode == os.stat(tmp_path / "plain.txt").st_mode & 0o777
