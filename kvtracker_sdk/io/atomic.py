@@ -56,9 +56,13 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     target = Path(path)
     tmp = target.with_name(f".{target.name}.{secrets.token_hex(6)}.tmp")
     os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # reserve; umask applies
+    mode = tmp.stat().st_mode & 0o777
     try:
         yield tmp
-        fd = os.open(tmp, os.O_RDWR)  # reopened: the writer may have recreated the file
+        # the writer may have replaced the file by renaming its own (safetensors does, with mode
+        # 0600): restore the umask's permissions and fsync what is now at the temporary path
+        os.chmod(tmp, mode)
+        fd = os.open(tmp, os.O_RDWR)
         try:
             os.fsync(fd)
         finally:

@@ -1,0 +1,274 @@
+"""Map files (``.kvmap``): save a :class:`KeyframeMap` atomically, read its header, load it safely.
+
+Format: safetensors (``map_schema`` lists the tensors, ``map_format`` the header). No pickle is
+ever read or written: a pickle, a zip (``torch.save``) or any other file renamed ``.kvmap`` is just
+bytes that fail the header checks, and is refused without being executed.
+
+Saving writes a temporary file beside the target, fsyncs it and ``os.replace``-s it over the
+target (then fsyncs the directory): the path holds the old map or the complete new one, never
+half of one, even if the process dies mid-write. Loading validates the whole header before
+touching tensor data, memory-maps the file (safetensors ``safe_open``), verifies every tensor's
+sha256, and copies the K/V once into the cache's preallocated buffers.
+
+Errors: MapFormatError (not a map / malformed header), MapVersionError (too old or too new),
+MapModelMismatchError (another model, family, layout or resolution), MapCorruptedError
+(checksums, truncation), MapIOError (cannot read or write the file) — all MapError.
+"""
+
+from __future__ import annotations
+
+import os
+import stat
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+from enum import Enum
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
+
+from kvtracker_sdk._version import __version__
+from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.cache.keyframe_map import KeyframeMap
+from kvtracker_sdk.errors import (
+    BackendMismatchError,
+    MapCorruptedError,
+    MapFormatError,
+    MapIOError,
+    MapModelMismatchError,
+)
+from kvtracker_sdk.io.atomic import atomic_path
+from kvtracker_sdk.io.map_format import MapInfo, encode_metadata, loads_strict, parse_header
+from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_VERSION, MAX_HEADER_BYTES
+from kvtracker_sdk.io.map_tensors import (
+    map_from_tensors,
+    map_to_tensors,
+    sha256_of,
+)
+from kvtracker_sdk.io.map_tensors import verify_checksums as verify_tensor_checksums
+from kvtracker_sdk.log import get_logger
+
+__all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
+
+_log = get_logger(__name__)
+PathLike = str | os.PathLike[str]
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedMap:
+    """A map read from a file: the map data, its header, and the tracker config it was saved with."""
+
+    keyframe_map: KeyframeMap
+    info: MapInfo
+
+    @property
+    def tracker_config_json(self) -> str:
+        return self.info.tracker_config_json
+
+    @property
+    def mode(self) -> str:
+        return self.info.mode
+
+
+# ---------------------------------------------------------------------------------- saving
+def _dtype_name(dtype: torch.dtype) -> str:
+    name = str(dtype).removeprefix("torch.")
+    if name not in CACHE_DTYPES:
+        raise MapFormatError(
+            f"cannot save map: cache dtype {name} (supported: {sorted(CACHE_DTYPES)})"
+        )
+    return name
+
+
+def _saved_info(
+    keyframe_map: KeyframeMap,
+    backend_info: BackendInfo,
+    tracker_config_json: str,
+    mode: str,
+    sdk_version: str,
+) -> MapInfo:
+    """The header of ``keyframe_map`` (checksums still empty), after checking it can be loaded."""
+    cache = keyframe_map.cache
+    if keyframe_map.num_keyframes == 0:
+        raise MapFormatError("cannot save map: it has no keyframes")
+    if cache.layout != backend_info.layout:
+        raise BackendMismatchError(
+            f"cannot save map: cache layout {cache.layout} differs from the backend's {backend_info.layout}"
+        )
+    first = keyframe_map.keyframes[0].image.shape
+    height, width = keyframe_map.resolution if keyframe_map.resolution != (0, 0) else first[:2]
+    if cache.tokens_per_frame != backend_info.tokens_per_frame(height, width):
+        raise BackendMismatchError(
+            f"cannot save map: {cache.tokens_per_frame} cache tokens per frame, but the backend "
+            f"makes {backend_info.tokens_per_frame(height, width)} at {height}x{width}"
+        )
+    keyframe_ids = keyframe_map.keyframe_ids
+    if len(set(keyframe_ids)) != len(keyframe_ids) or set(keyframe_ids) != set(cache.keyframe_ids):
+        raise MapFormatError(
+            f"cannot save map: keyframe ids {list(keyframe_ids)} do not match the cache's "
+            f"{list(cache.keyframe_ids)}"
+        )
+    config = loads_strict(tracker_config_json, "cannot save map: the tracker config")
+    if not isinstance(config, dict):
+        raise MapFormatError("cannot save map: the tracker config must be a JSON object")
+    mode = mode.value if isinstance(mode, Enum) else mode
+    return MapInfo(
+        format_version=FORMAT_VERSION,
+        sdk_version=sdk_version,
+        created_utc=datetime.now(timezone.utc),
+        backend=backend_info,
+        resolution=(int(height), int(width)),
+        dtype=_dtype_name(cache.dtype),
+        tokens_per_frame=cache.tokens_per_frame,
+        mode=str(mode),
+        tracker_config_json=tracker_config_json,
+        keyframe_ids=keyframe_ids,
+        cache_keyframe_ids=cache.keyframe_ids,
+        generation=keyframe_map.generation,
+        gauge=keyframe_map.gauge,
+        user_metadata=dict(keyframe_map.metadata),
+        tensor_sha256={},
+    )
+
+
+def save_map(
+    path: PathLike,
+    keyframe_map: KeyframeMap,
+    *,
+    backend_info: BackendInfo,
+    tracker_config_json: str,
+    mode: str,
+    sdk_version: str = __version__,
+) -> MapInfo:
+    """Write ``keyframe_map`` to ``path`` atomically and return the written header.
+
+    ``backend_info`` is the backend that made the cache (its fingerprint and layout go into the
+    header); ``tracker_config_json`` is the tracker's configuration as a JSON object; ``mode``
+    the tracking mode ("scene", "object"). The cache is snapshotted under its lock. If anything
+    fails, ``path`` still holds its previous content and no temporary file remains.
+    """
+    target = Path(path)
+    info = _saved_info(keyframe_map, backend_info, tracker_config_json, mode, sdk_version)
+    tensors = map_to_tensors(keyframe_map, info.resolution)
+    info = replace(info, tensor_sha256=sha256_of(tensors))
+    try:
+        with atomic_path(target) as tmp:
+            save_file(tensors, tmp, metadata=encode_metadata(info))
+            size = tmp.stat().st_size
+    except (OSError, SafetensorError) as exc:
+        raise MapIOError(f"cannot write map {target}: {exc}") from exc
+    _log.info("map saved", path=str(target), keyframes=info.num_keyframes, bytes=size)
+    return replace(info, file_size=size)
+
+
+# ---------------------------------------------------------------------------------- loading
+def _read_header(path: PathLike) -> tuple[MapInfo, dict[str, str]]:
+    """Read and validate the header only (at most MAX_HEADER_BYTES, never tensor data)."""
+    source = str(path)
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO or device could block a read
+            raise MapFormatError(f"{source} is not a regular file")
+        with open(path, "rb") as handle:
+            file_size = os.fstat(handle.fileno()).st_size
+            prefix = handle.read(8)
+            if len(prefix) < 8:
+                raise MapFormatError(
+                    f"{source} is not a kvtracker map: {file_size} bytes is too short"
+                )
+            header_size = int.from_bytes(prefix, "little")
+            if not 2 <= header_size <= MAX_HEADER_BYTES:
+                raise MapFormatError(
+                    f"{source} is not a kvtracker map: its first 8 bytes give a header of "
+                    f"{header_size} bytes, outside [2, {MAX_HEADER_BYTES}] (a pickle, a zip, ...?)"
+                )
+            if 8 + header_size > file_size:
+                raise MapCorruptedError(
+                    f"{source} is truncated inside its {header_size}-byte header"
+                )
+            header = handle.read(header_size)
+    except OSError as exc:
+        raise MapIOError(f"cannot read map {source}: {exc}") from exc
+    return parse_header(header, file_size=file_size, source=source)
+
+
+def read_map_info(path: PathLike) -> MapInfo:
+    """The validated header of the map at ``path``, without reading any tensor data."""
+    return _read_header(path)[0]
+
+
+def _describe(backend: BackendInfo) -> str:
+    return f"model {backend.model!r} (family {backend.family}, fingerprint {backend.fingerprint})"
+
+
+def check_map_compatible(
+    info: MapInfo, backend: BackendInfo, *, resolution: tuple[int, int] | None = None
+) -> None:
+    """Raise MapModelMismatchError unless ``backend`` computes the function that made the map.
+
+    Family, config hash, weights fingerprint, cache layout and tokenisation must agree (the
+    runtime, device and dtype may differ); ``resolution`` (H, W), if given, must equal the map's.
+    """
+    saved = info.backend
+    differences = [
+        f"{what} {mine!r} vs {theirs!r}"
+        for what, mine, theirs in (
+            ("family", saved.family, backend.family),
+            ("config hash", saved.config_hash, backend.config_hash),
+            ("weights fingerprint", saved.weights_fingerprint, backend.weights_fingerprint),
+            ("cache layout", saved.layout, backend.layout),
+            ("patch size", saved.patch_size, backend.patch_size),
+            (
+                "extra tokens per frame",
+                saved.extra_tokens_per_frame,
+                backend.extra_tokens_per_frame,
+            ),
+            ("resolution", info.resolution, tuple(resolution or info.resolution)),
+        )
+        if mine != theirs
+    ]
+    if differences:
+        raise MapModelMismatchError(
+            f"map made by {_describe(saved)} at {info.resolution[0]}x{info.resolution[1]} cannot "
+            f"be used with {_describe(backend)}: " + "; ".join(differences) + " (map vs backend)"
+        )
+
+
+def load_map(
+    path: PathLike,
+    *,
+    expected_backend: BackendInfo | None = None,
+    expected_resolution: tuple[int, int] | None = None,
+    verify_checksums: bool = True,
+) -> LoadedMap:
+    """Load the map at ``path``: header checks, model check, memory-mapped read, checksums.
+
+    With ``expected_backend`` the map must come from the same model (see
+    :func:`check_map_compatible`; checked before any tensor is read) and the cache is returned
+    in that backend's dtype (if it is a cache dtype) and on its device; ``expected_resolution``
+    (H, W) must match the map's. ``verify_checksums=False`` skips hashing the tensor data
+    (about twice as fast; the header and sizes are still checked).
+    """
+    info, metadata = _read_header(path)
+    source = str(path)
+    if expected_backend is not None:
+        check_map_compatible(info, expected_backend, resolution=expected_resolution)
+    try:
+        with safe_open(source, framework="pt") as reader:
+            if reader.metadata() != metadata:  # the file was replaced since its header was read
+                raise MapCorruptedError(f"{source} changed while it was being loaded")
+            tensors = {name: reader.get_tensor(name) for name in info.tensor_schema()}
+    except (SafetensorError, OSError, RuntimeError, ValueError) as exc:
+        raise MapCorruptedError(
+            f"{source}: safetensors cannot read the tensor data: {exc}"
+        ) from exc
+    if verify_checksums:
+        verify_tensor_checksums(tensors, info.tensor_sha256, source)
+    dtype, device = None, None
+    if expected_backend is not None:  # hand back a cache that backend can use as is
+        if expected_backend.dtype in CACHE_DTYPES:
+            dtype = getattr(torch, expected_backend.dtype)
+        device = expected_backend.device
+    keyframe_map = map_from_tensors(tensors, info, source, dtype=dtype, device=device)
+    _log.info("map loaded", path=source, keyframes=info.num_keyframes, verified=verify_checksums)
+    return LoadedMap(keyframe_map=keyframe_map, info=info)

@@ -1,0 +1,370 @@
+"""The ``.kvmap`` header: :class:`MapInfo`, its encoding, and validation of raw header bytes.
+
+A map file is a safetensors file: an 8-byte little-endian header length ``n``, ``n`` bytes of
+UTF-8 JSON (tensor name -> dtype, shape, data offsets; plus ``__metadata__``, a str -> str map),
+then the tensor bytes. Our ``__metadata__`` holds every scalar of the map (values that are not
+plain strings are nested JSON), the sha256 of each tensor's bytes, and ``metadata_sha256`` over
+the other metadata entries, so a flipped byte in the tracker config or the gauge is caught, not
+silently loaded.
+
+This module does no file I/O: it builds the metadata for a :class:`MapInfo`, and turns raw header
+bytes back into a validated ``MapInfo`` — checking everything that can be checked without the
+tensor data: format name, version range, header checksum, fields and their types, and that the
+tensor table matches the declared layout exactly and tiles the file's data section.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import datetime
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.cache.kv_cache import CacheLayout
+from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapVersionError
+from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.io.map_schema import (
+    CACHE_DTYPES,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    OLDEST_READABLE_VERSION,
+    TensorSpec,
+    check_tensor_table,
+    layer_key,
+    tensor_schema,
+)
+
+__all__ = ["MapInfo", "encode_metadata", "metadata_digest", "parse_header"]
+
+_DIGEST_KEY = "metadata_sha256"
+_JSON_NAMES: dict[type, str] = {dict: "object", list: "array"}
+_REQUIRED = (
+    "format", "format_version", "sdk_version", "created_utc", "backend", "resolution", "dtype",
+    "layout", "mode", "tracker_config", "keyframe_ids", "cache_keyframe_ids", "generation",
+    "gauge", "user_metadata", "tensor_sha256", _DIGEST_KEY,
+)  # fmt: skip
+
+
+@dataclass(frozen=True, eq=False)
+class MapInfo:
+    """Everything a map file's header says, parsed and validated (no tensor data read).
+
+    ``backend`` is the :class:`BackendInfo` of the backend that saved the map; its
+    ``fingerprint`` (family + config hash + weights) decides which backends may load it.
+    """
+
+    format_version: int
+    sdk_version: str
+    created_utc: datetime  # timezone-aware, UTC
+    backend: BackendInfo
+    resolution: tuple[int, int]  # (H, W) model input, pixels
+    dtype: str  # cache dtype name, a key of CACHE_DTYPES
+    tokens_per_frame: int
+    mode: str  # tracking mode of the session that saved the map ("scene", "object")
+    tracker_config_json: str  # the tracker configuration, JSON text exactly as saved
+    keyframe_ids: tuple[int, ...]  # order of the per-keyframe tensors
+    cache_keyframe_ids: tuple[int, ...]  # order of the keyframes along the cache's token axis
+    generation: int
+    gauge: Sim3  # raw frame of the cache's mapping pass -> world frame
+    user_metadata: Mapping[str, str]
+    tensor_sha256: Mapping[str, str]  # tensor name -> hex sha256 of its bytes
+    file_size: int = 0  # bytes on disk (0 until written)
+
+    @property
+    def layout(self) -> CacheLayout:
+        return self.backend.layout
+
+    @property
+    def fingerprint(self) -> str:
+        return self.backend.fingerprint
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.keyframe_ids)
+
+    @property
+    def cache_nbytes(self) -> int:
+        """Bytes of the stored K/V (all layers)."""
+        return 2 * self.layout.num_layers * self.tensor_schema()[layer_key(0)].nbytes
+
+    def tensor_schema(self) -> dict[str, TensorSpec]:
+        """Name -> (safetensors dtype, shape) of every tensor this header declares."""
+        return tensor_schema(
+            self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution
+        )
+
+
+def _dumps(value: Any) -> str:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False)
+
+
+def metadata_digest(metadata: Mapping[str, str]) -> str:
+    """sha256 of the canonical JSON of every metadata entry except the digest itself."""
+    body = {key: value for key, value in metadata.items() if key != _DIGEST_KEY}
+    return hashlib.sha256(
+        json.dumps(body, sort_keys=True, separators=(",", ":")).encode()
+    ).hexdigest()
+
+
+def encode_metadata(info: MapInfo) -> dict[str, str]:
+    """The safetensors ``__metadata__`` (str -> str) of ``info``, sealed with its digest."""
+    b = info.backend
+    backend = {
+        "backend": b.backend, "model": b.model, "family": b.family, "config_hash": b.config_hash,
+        "weights_fingerprint": b.weights_fingerprint, "fingerprint": b.fingerprint,
+        "patch_size": b.patch_size, "extra_tokens_per_frame": b.extra_tokens_per_frame,
+        "dtype": b.dtype, "device": b.device, "accelerations": list(b.accelerations),
+    }  # fmt: skip
+    layout = {**b.layout.to_dict(), "tokens_per_frame": info.tokens_per_frame}
+    gauge = {
+        "rotation": info.gauge.rotation.tolist(),
+        "translation": info.gauge.translation.tolist(),
+        "scale": info.gauge.scale,
+    }
+    metadata = {
+        "format": FORMAT_NAME,
+        "format_version": str(info.format_version),
+        "sdk_version": info.sdk_version,
+        "created_utc": info.created_utc.isoformat(),
+        "backend": _dumps(backend),
+        "resolution": _dumps(list(info.resolution)),
+        "dtype": info.dtype,
+        "layout": _dumps(layout),
+        "mode": info.mode,
+        "tracker_config": info.tracker_config_json,
+        "keyframe_ids": _dumps(list(info.keyframe_ids)),
+        "cache_keyframe_ids": _dumps(list(info.cache_keyframe_ids)),
+        "generation": str(info.generation),
+        # JSON floats are written with repr, so R, t and s read back bit for bit (a 4x4 sR
+        # matrix would not give back R and s exactly)
+        "gauge": _dumps(gauge),
+        "user_metadata": _dumps(dict(info.user_metadata)),
+        "tensor_sha256": _dumps(dict(info.tensor_sha256)),
+    }
+    metadata[_DIGEST_KEY] = metadata_digest(metadata)
+    return metadata
+
+
+# ---------------------------------------------------------------------------------- decoding
+class _Fields:
+    """Typed access to metadata fields; every failure is a MapFormatError naming the field."""
+
+    def __init__(self, metadata: Mapping[str, str], source: str) -> None:
+        self.metadata = metadata
+        self.source = source
+
+    def fail(self, message: str) -> MapFormatError:
+        return MapFormatError(f"{self.source}: {message}")
+
+    def text(self, key: str) -> str:
+        return self.metadata[key]
+
+    def json(self, key: str, kind: type) -> Any:
+        value = loads_strict(self.metadata[key], f"{self.source}: header field '{key}'")
+        if not isinstance(value, kind):
+            raise self.fail(f"header field '{key}' must be a JSON {_JSON_NAMES[kind]}")
+        return value
+
+    def integer(self, value: Any, what: str, minimum: int = 0) -> int:
+        if type(value) is not int or value < minimum:
+            raise self.fail(f"{what} must be an integer >= {minimum}, got {value!r}")
+        return value
+
+    def decimal(self, key: str, minimum: int = 0) -> int:
+        text = self.metadata[key]
+        if not (text.isascii() and text.isdigit() and len(text) <= 18):
+            raise self.fail(
+                f"header field '{key}' must be a non-negative integer, got {text[:40]!r}"
+            )
+        return self.integer(int(text), f"header field '{key}'", minimum)
+
+
+def _is_finite_number(value: Any) -> bool:
+    return type(value) in (int, float) and math.isfinite(value)
+
+
+def _is_vector(value: Any, length: int) -> bool:
+    return isinstance(value, list) and len(value) == length and all(map(_is_finite_number, value))
+
+
+def loads_strict(text: str | bytes, what: str) -> Any:
+    """``json.loads`` that refuses NaN/Infinity and duplicate keys; errors are MapFormatError."""
+
+    def no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        result = dict(pairs)
+        if len(result) != len(pairs):
+            raise ValueError("duplicate keys")
+        return result
+
+    def no_constants(name: str) -> Any:
+        raise ValueError(f"{name} is not allowed")
+
+    try:
+        text = text.decode("utf-8") if isinstance(text, bytes) else text
+        return json.loads(text, object_pairs_hook=no_duplicates, parse_constant=no_constants)
+    except (ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
+        raise MapFormatError(f"{what} is not valid JSON: {str(exc)[:200]}") from exc
+
+
+def _check_version(fields: _Fields) -> int:
+    if fields.metadata.get("format") != FORMAT_NAME:
+        raise fields.fail(f"not a kvtracker map (format is {fields.metadata.get('format')!r})")
+    if "format_version" not in fields.metadata:
+        raise fields.fail("header lacks 'format_version'")
+    version = fields.decimal("format_version")
+    if version < OLDEST_READABLE_VERSION:
+        raise MapVersionError(
+            f"{fields.source}: map format version {version} is too old: this SDK reads versions "
+            f"{OLDEST_READABLE_VERSION} to {FORMAT_VERSION}"
+        )
+    if version > FORMAT_VERSION:
+        raise MapVersionError(
+            f"{fields.source}: map format version {version} is too new: this SDK reads versions "
+            f"{OLDEST_READABLE_VERSION} to {FORMAT_VERSION}; upgrade kvtracker-sdk"
+        )
+    return version
+
+
+def _decode_backend(fields: _Fields) -> tuple[BackendInfo, int]:
+    """The saving backend's description (with the cache layout) and the tokens per frame."""
+    raw = fields.json("backend", dict)
+    layout = fields.json("layout", dict)
+    names = ("backend", "model", "family", "config_hash", "weights_fingerprint", "dtype", "device")
+    if not all(isinstance(raw.get(key), str) for key in names):
+        raise fields.fail(f"backend description needs string fields {list(names)}")
+    block_indices, accelerations = layout.get("block_indices"), raw.get("accelerations")
+    if not isinstance(block_indices, list) or not block_indices:
+        raise fields.fail("layout block_indices must be a non-empty list")
+    if not isinstance(accelerations, list) or not all(isinstance(a, str) for a in accelerations):
+        raise fields.fail("backend accelerations must be a list of strings")
+    backend = BackendInfo(
+        **{key: raw[key] for key in names},
+        patch_size=fields.integer(raw.get("patch_size"), "backend patch_size", 1),
+        extra_tokens_per_frame=fields.integer(raw.get("extra_tokens_per_frame"), "extra tokens"),
+        layout=CacheLayout(
+            block_indices=tuple(fields.integer(i, "layout block index") for i in block_indices),
+            num_heads=fields.integer(layout.get("num_heads"), "layout num_heads", 1),
+            head_dim=fields.integer(layout.get("head_dim"), "layout head_dim", 1),
+        ),
+        accelerations=tuple(accelerations),
+    )
+    return backend, fields.integer(layout.get("tokens_per_frame"), "tokens_per_frame", 1)
+
+
+def _decode_resolution(
+    fields: _Fields, backend: BackendInfo, tokens_per_frame: int
+) -> tuple[int, int]:
+    resolution = fields.json("resolution", list)
+    if len(resolution) != 2:
+        raise fields.fail(f"resolution must be [H, W], got {resolution!r}")
+    height, width = (fields.integer(v, "resolution", backend.patch_size) for v in resolution)
+    if tokens_per_frame != backend.tokens_per_frame(height, width):
+        raise fields.fail(
+            f"tokens_per_frame {tokens_per_frame} does not match {height}x{width} pixels with "
+            f"patch {backend.patch_size} and {backend.extra_tokens_per_frame} extra tokens"
+        )
+    return height, width
+
+
+def _decode_ids(fields: _Fields, key: str) -> tuple[int, ...]:
+    ids = tuple(fields.integer(i, f"'{key}' entry") for i in fields.json(key, list))
+    if not ids or len(set(ids)) != len(ids):
+        raise fields.fail(f"'{key}' must list at least one keyframe, without duplicates")
+    return ids
+
+
+def _decode_gauge(fields: _Fields) -> Sim3:
+    raw = fields.json("gauge", dict)
+    rotation, translation, scale = raw.get("rotation"), raw.get("translation"), raw.get("scale")
+    if not (isinstance(rotation, list) and len(rotation) == 3 and all(_is_vector(r, 3) for r in rotation)):  # fmt: skip
+        raise fields.fail("gauge rotation must be 3x3 finite numbers")
+    if not _is_vector(translation, 3) or not _is_finite_number(scale) or scale <= 0:
+        raise fields.fail("gauge translation must be 3 finite numbers and its scale finite and > 0")
+    return Sim3(
+        np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64), float(scale)
+    )
+
+
+def _decode_string_map(fields: _Fields, key: str) -> dict[str, str]:
+    value = fields.json(key, dict)
+    if not all(isinstance(v, str) for v in value.values()):
+        raise fields.fail(f"'{key}' values must be strings")
+    return value
+
+
+def _decode_created(fields: _Fields) -> datetime:
+    try:
+        created = datetime.fromisoformat(fields.text("created_utc"))
+    except ValueError as exc:
+        raise fields.fail(f"created_utc is not an ISO date: {exc}") from exc
+    if created.tzinfo is None:
+        raise fields.fail("created_utc must carry a timezone")
+    return created
+
+
+def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str) -> MapInfo:
+    """Validate ``__metadata__`` and build the MapInfo: format and version first (a newer
+    version may seal its header differently), then the header checksum, then every field."""
+    fields = _Fields(metadata, source)
+    version = _check_version(fields)
+    if metadata.get(_DIGEST_KEY) != metadata_digest(metadata):
+        raise MapCorruptedError(f"{source}: header checksum mismatch (the header was altered)")
+    missing = [key for key in _REQUIRED if key not in metadata]
+    if missing:
+        raise fields.fail(f"header lacks required fields {missing}")
+    backend, tokens_per_frame = _decode_backend(fields)
+    dtype = fields.text("dtype")
+    if dtype not in CACHE_DTYPES:
+        raise fields.fail(f"unsupported cache dtype {dtype!r} (known: {sorted(CACHE_DTYPES)})")
+    keyframe_ids = _decode_ids(fields, "keyframe_ids")
+    cache_keyframe_ids = _decode_ids(fields, "cache_keyframe_ids")
+    if set(cache_keyframe_ids) != set(keyframe_ids):
+        raise fields.fail("the cache's keyframe ids differ from the keyframes' ids")
+    fields.json("tracker_config", dict)  # the tracker parses it later: fail here, typed
+    return MapInfo(
+        format_version=version,
+        sdk_version=fields.text("sdk_version"),
+        created_utc=_decode_created(fields),
+        backend=backend,
+        resolution=_decode_resolution(fields, backend, tokens_per_frame),
+        dtype=dtype,
+        tokens_per_frame=tokens_per_frame,
+        mode=fields.text("mode"),
+        tracker_config_json=fields.text("tracker_config"),
+        keyframe_ids=keyframe_ids,
+        cache_keyframe_ids=cache_keyframe_ids,
+        generation=fields.decimal("generation"),
+        gauge=_decode_gauge(fields),
+        user_metadata=MappingProxyType(_decode_string_map(fields, "user_metadata")),
+        tensor_sha256=MappingProxyType(_decode_string_map(fields, "tensor_sha256")),
+        file_size=file_size,
+    )
+
+
+def parse_header(header: bytes, *, file_size: int, source: str) -> tuple[MapInfo, dict[str, str]]:
+    """Validate a map's raw JSON header (the ``n`` bytes after the length prefix).
+
+    Returns the MapInfo and the raw ``__metadata__``. Checks, in order: JSON well-formed, a
+    ``__metadata__`` of strings, format and version, header checksum, fields, then the tensor
+    table against the declared layout and the file's data section
+    (``file_size - 8 - len(header)`` bytes). Raises the typed map errors only.
+    """
+    table = loads_strict(header, f"{source}: header")
+    if not isinstance(table, dict):
+        raise MapFormatError(f"{source}: header is not a JSON object")
+    metadata = table.pop("__metadata__", None)
+    if not isinstance(metadata, dict) or not all(isinstance(v, str) for v in metadata.values()):
+        raise MapFormatError(
+            f"{source}: not a kvtracker map (no string __metadata__ in the header)"
+        )
+    info = decode_metadata(metadata, file_size=file_size, source=source)
+    data_size = file_size - 8 - len(header)
+    check_tensor_table(table, info.tensor_schema(), info.tensor_sha256, data_size, source)
+    return info, metadata

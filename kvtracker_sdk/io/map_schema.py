@@ -1,0 +1,188 @@
+"""The ``.kvmap`` tensor schema: format constants, tensor names, dtypes and shapes.
+
+Given a header's declared layout, cache dtype, keyframe count and resolution, the schema says
+exactly which tensors the file must contain, with which safetensors dtype and shape. The loader
+checks the file's tensor table against it — names, dtypes, shapes, and data offsets that tile the
+data section with no gap, overlap or missing byte — before any tensor byte is read.
+
+Tensors (N keyframes, T tokens per frame, H x W model resolution, L cached layers)::
+
+    name                               dtype     shape                   content
+    layers.{i}.key, layers.{i}.value   cache     [heads, N*T, head_dim]  K/V of cached layer i, keyframe-major
+    keyframes.image                    uint8     [N, H, W, 3]            RGB at model resolution
+    keyframes.mask                     uint8     [N, H, W]               0/1 object mask (0 where absent)
+    keyframes.has_mask                 uint8     [N]                     1 if the keyframe has a mask
+    keyframes.T_world_cam              float64   [N, 4, 4]               camera-to-world, world frame
+    keyframes.timestamp                float64   [N]                     seconds; NaN = no timestamp
+    keyframes.frame_index              int64     [N]                     session frame index
+    keyframes.confidence               float32   [N, H, W]               per-pixel confidence in [0, 1]
+    keyframes.mean_confidence          float64   [N]                     mean confidence over the mask
+    keyframes.local_points             float32   [N, H, W, 3]            camera-frame points, world scale
+
+The gauge (raw frame of the cache -> world) and every other scalar live in the JSON header.
+
+Local points stay float32 (as in memory): a reloaded map then reproduces object centres and
+gauge scales bit for bit, and they cost ~3% of a map (the K/V dominate); float16 would save that
+3% at ~5e-4 relative error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
+from kvtracker_sdk.cache.kv_cache import CacheLayout
+from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
+
+__all__ = [
+    "CACHE_DTYPES",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "MAX_HEADER_BYTES",
+    "OLDEST_READABLE_VERSION",
+    "TensorSpec",
+    "check_tensor_table",
+    "layer_key",
+    "layer_value",
+    "tensor_schema",
+]
+
+FORMAT_NAME = "kvtracker-map"
+FORMAT_VERSION = 1  # bump on any change a version-1 reader would misread
+OLDEST_READABLE_VERSION = 1
+# Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
+# A pickle or a zip read as a header length gives a number far above this.
+MAX_HEADER_BYTES = 8 * 1024 * 1024
+
+# cache dtype name (as in BackendInfo.dtype) -> (safetensors dtype code, bytes per element)
+CACHE_DTYPES: dict[str, tuple[str, int]] = {
+    "float32": ("F32", 4),
+    "float16": ("F16", 2),
+    "bfloat16": ("BF16", 2),
+}
+_ITEMSIZE = {"F32": 4, "F16": 2, "BF16": 2, "F64": 8, "I64": 8, "U8": 1}
+
+IMAGE = "keyframes.image"
+MASK = "keyframes.mask"
+HAS_MASK = "keyframes.has_mask"
+T_WORLD_CAM = "keyframes.T_world_cam"
+TIMESTAMP = "keyframes.timestamp"
+FRAME_INDEX = "keyframes.frame_index"
+CONFIDENCE = "keyframes.confidence"
+MEAN_CONFIDENCE = "keyframes.mean_confidence"
+LOCAL_POINTS = "keyframes.local_points"
+
+
+class TensorSpec(NamedTuple):
+    dtype: str  # safetensors dtype code
+    shape: tuple[int, ...]
+
+    @property
+    def nbytes(self) -> int:
+        count = 1
+        for dim in self.shape:
+            count *= dim
+        return count * _ITEMSIZE[self.dtype]
+
+
+def layer_key(layer: int) -> str:
+    return f"layers.{layer}.key"
+
+
+def layer_value(layer: int) -> str:
+    return f"layers.{layer}.value"
+
+
+def tensor_schema(
+    layout: CacheLayout,
+    cache_dtype: str,
+    num_keyframes: int,
+    tokens_per_frame: int,
+    resolution: tuple[int, int],
+) -> dict[str, TensorSpec]:
+    """Name -> spec of every tensor of a map with these properties (see the module table)."""
+    n, (h, w) = num_keyframes, resolution
+    kv = TensorSpec(
+        CACHE_DTYPES[cache_dtype][0], (layout.num_heads, n * tokens_per_frame, layout.head_dim)
+    )
+    schema = {}
+    for layer in range(layout.num_layers):
+        schema[layer_key(layer)] = kv
+        schema[layer_value(layer)] = kv
+    schema.update(
+        {
+            IMAGE: TensorSpec("U8", (n, h, w, 3)),
+            MASK: TensorSpec("U8", (n, h, w)),
+            HAS_MASK: TensorSpec("U8", (n,)),
+            T_WORLD_CAM: TensorSpec("F64", (n, 4, 4)),
+            TIMESTAMP: TensorSpec("F64", (n,)),
+            FRAME_INDEX: TensorSpec("I64", (n,)),
+            CONFIDENCE: TensorSpec("F32", (n, h, w)),
+            MEAN_CONFIDENCE: TensorSpec("F64", (n,)),
+            LOCAL_POINTS: TensorSpec("F32", (n, h, w, 3)),
+        }
+    )
+    return schema
+
+
+def _is_int_list(value: Any, length: int | None = None) -> bool:
+    return (
+        isinstance(value, list)
+        and (length is None or len(value) == length)
+        and all(type(v) is int and v >= 0 for v in value)
+    )
+
+
+def _is_sha256_hex(text: str) -> bool:
+    return len(text) == 64 and all(c in "0123456789abcdef" for c in text)
+
+
+def check_tensor_table(
+    entries: dict[str, Any],
+    schema: dict[str, TensorSpec],
+    checksums: Mapping[str, str],
+    data_size: int,
+    source: str,
+) -> None:
+    """Check a header's tensor table and checksums against ``schema`` and the data section size.
+
+    Malformed or inconsistent entries raise MapFormatError; a data section shorter or longer
+    than the table declares (a truncated or padded file) raises MapCorruptedError.
+    """
+    missing = sorted(set(schema) - set(entries))
+    unexpected = sorted(set(entries) - set(schema))
+    if missing or unexpected:
+        raise MapFormatError(
+            f"{source}: tensor table does not match the declared layout "
+            f"(missing {missing[:4]}, unexpected {unexpected[:4]})"
+        )
+    if set(checksums) != set(schema) or not all(map(_is_sha256_hex, checksums.values())):
+        raise MapFormatError(f"{source}: tensor checksums do not cover exactly the map's tensors")
+    spans = []
+    for name, spec in schema.items():
+        entry = entries[name]
+        if not isinstance(entry, dict) or set(entry) != {"dtype", "shape", "data_offsets"}:
+            raise MapFormatError(f"{source}: tensor '{name}' has a malformed table entry")
+        shape, offsets = entry["shape"], entry["data_offsets"]
+        if entry["dtype"] != spec.dtype or not _is_int_list(shape) or tuple(shape) != spec.shape:
+            raise MapFormatError(
+                f"{source}: tensor '{name}' is {entry['dtype']!r} {shape!r}, the header's layout "
+                f"requires {spec.dtype} {list(spec.shape)}"
+            )
+        if not _is_int_list(offsets, 2) or offsets[1] - offsets[0] != spec.nbytes:
+            raise MapFormatError(f"{source}: tensor '{name}' has bad data offsets {offsets!r}")
+        spans.append((offsets[0], offsets[1], name))
+    position = 0
+    for begin, end, name in sorted(spans):
+        if begin != position:
+            raise MapFormatError(f"{source}: tensor data of '{name}' overlaps or leaves a gap")
+        position = end
+    if position > data_size:
+        raise MapCorruptedError(
+            f"{source} is truncated: the header declares {position} bytes of tensor data, "
+            f"the file holds {data_size}"
+        )
+    if position < data_size:
+        raise MapCorruptedError(
+            f"{source} has {data_size - position} unexpected bytes after its data"
+        )

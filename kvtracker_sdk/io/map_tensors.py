@@ -1,0 +1,201 @@
+"""A :class:`KeyframeMap` as the map file's tensors and back, and the tensors' checksums.
+
+The tensor names, dtypes and shapes are those of ``map_schema`` (one stacked tensor per keyframe
+attribute, one K and one V tensor per cached layer). Saving snapshots the cache under its lock
+into contiguous CPU tensors; loading copies every keyframe array out of the memory-mapped file
+(small next to the K/V) and lets ``KVCache.from_layers`` copy the K/V into its preallocated
+buffers, so nothing the caller keeps points into the file's mapping — a file replaced or
+truncated later cannot fault a running tracker.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+from kvtracker_sdk.cache.kv_cache import KVCache
+from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError
+from kvtracker_sdk.io.map_format import MapInfo
+from kvtracker_sdk.io.map_schema import (
+    CONFIDENCE,
+    FRAME_INDEX,
+    HAS_MASK,
+    IMAGE,
+    LOCAL_POINTS,
+    MASK,
+    MEAN_CONFIDENCE,
+    T_WORLD_CAM,
+    TIMESTAMP,
+    layer_key,
+    layer_value,
+)
+
+__all__ = ["map_from_tensors", "map_to_tensors", "sha256_of", "verify_checksums"]
+
+# hashlib releases the GIL on large buffers, so tensors hash in parallel; 4 threads saturate
+# memory bandwidth on common machines.
+_HASH_WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+
+def _tensor_bytes(tensor: torch.Tensor) -> memoryview:
+    """The raw bytes of a contiguous CPU tensor (any dtype, bfloat16 included), no copy."""
+    return tensor.reshape(-1).view(torch.uint8).numpy().data
+
+
+def sha256_of(tensors: Mapping[str, torch.Tensor]) -> dict[str, str]:
+    """Hex sha256 of each contiguous CPU tensor's bytes."""
+    with ThreadPoolExecutor(max_workers=_HASH_WORKERS) as pool:
+        digests = pool.map(lambda t: hashlib.sha256(_tensor_bytes(t)).hexdigest(), tensors.values())
+        return dict(zip(tensors, digests, strict=True))
+
+
+def verify_checksums(
+    tensors: Mapping[str, torch.Tensor], expected: Mapping[str, str], source: str
+) -> None:
+    """Raise MapCorruptedError naming every tensor whose bytes do not match ``expected``."""
+    actual = sha256_of(tensors)
+    bad = sorted(name for name, digest in expected.items() if actual.get(name) != digest)
+    if bad:
+        raise MapCorruptedError(f"{source}: checksum mismatch in {len(bad)} tensor(s): {bad[:6]}")
+
+
+# ---------------------------------------------------------------------------------- saving
+def _checked(kf: Keyframe, name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(value)
+    if array.shape != shape:
+        raise MapFormatError(
+            f"cannot save map: keyframe {kf.keyframe_id} {name} has shape {array.shape}, expected {shape}"
+        )
+    return array
+
+
+def _stack(
+    keyframe_map: KeyframeMap, name: str, shape: tuple[int, ...], dtype: type
+) -> torch.Tensor:
+    arrays = [_checked(kf, name, getattr(kf, name), shape) for kf in keyframe_map.keyframes]
+    return torch.from_numpy(np.stack(arrays).astype(dtype, copy=False))
+
+
+def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
+    """Contiguous CPU copies [heads, N*T, head_dim] of every layer's cached K and V."""
+    layers = {}
+    with cache.lock:  # a consistent snapshot even if another thread edits the cache afterwards
+        for i in range(cache.layout.num_layers):
+            for name, view in ((layer_key(i), cache.keys(i)), (layer_value(i), cache.values(i))):
+                layers[name] = torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
+    return layers
+
+
+def map_to_tensors(
+    keyframe_map: KeyframeMap, resolution: tuple[int, int]
+) -> dict[str, torch.Tensor]:
+    """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W).
+
+    Raises MapFormatError if a keyframe's arrays do not match the resolution or a pose is not
+    finite: such a map could not be loaded back.
+    """
+    h, w = resolution
+    kfs = keyframe_map.keyframes
+    for kf in kfs:
+        if np.asarray(kf.image).dtype != np.uint8:
+            raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} image is not uint8")
+        if not np.all(np.isfinite(kf.T_world_cam)):
+            raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} pose is not finite")
+    masks = [
+        np.zeros((h, w), np.uint8)
+        if kf.mask is None
+        else _checked(kf, "mask", kf.mask, (h, w)) != 0
+        for kf in kfs
+    ]
+    tensors = {
+        **_cache_layers(keyframe_map.cache),
+        IMAGE: _stack(keyframe_map, "image", (h, w, 3), np.uint8),
+        MASK: torch.from_numpy(np.stack(masks).astype(np.uint8)),
+        HAS_MASK: torch.tensor([kf.mask is not None for kf in kfs], dtype=torch.uint8),
+        T_WORLD_CAM: _stack(keyframe_map, "T_world_cam", (4, 4), np.float64),
+        TIMESTAMP: torch.tensor(
+            [math.nan if kf.timestamp is None else kf.timestamp for kf in kfs], dtype=torch.float64
+        ),
+        FRAME_INDEX: torch.tensor([kf.frame_index for kf in kfs], dtype=torch.int64),
+        CONFIDENCE: _stack(keyframe_map, "confidence_map", (h, w), np.float32),
+        MEAN_CONFIDENCE: torch.tensor([kf.mean_confidence for kf in kfs], dtype=torch.float64),
+        LOCAL_POINTS: _stack(keyframe_map, "local_points", (h, w, 3), np.float32),
+    }
+    return tensors
+
+
+# ---------------------------------------------------------------------------------- loading
+def _keyframes(
+    tensors: Mapping[str, torch.Tensor], info: MapInfo, source: str
+) -> tuple[Keyframe, ...]:
+    """Keyframes with their own copies of the arrays (never views of the file mapping)."""
+    poses = tensors[T_WORLD_CAM].numpy()
+    has_mask = tensors[HAS_MASK].numpy()
+    if not np.all(np.isfinite(poses)):  # the same check as on saving
+        raise MapCorruptedError(f"{source}: a keyframe pose is not finite")
+    if not np.all((has_mask == 0) | (has_mask == 1)):
+        raise MapCorruptedError(f"{source}: mask presence flags must be 0 or 1")
+    images, masks = tensors[IMAGE].numpy(), tensors[MASK].numpy()
+    confidence, points = tensors[CONFIDENCE].numpy(), tensors[LOCAL_POINTS].numpy()
+    stamps, frames = tensors[TIMESTAMP].numpy(), tensors[FRAME_INDEX].numpy()
+    mean_confidence = tensors[MEAN_CONFIDENCE].numpy()
+    return tuple(
+        Keyframe(
+            keyframe_id=keyframe_id,
+            frame_index=int(frames[i]),
+            timestamp=None if math.isnan(stamps[i]) else float(stamps[i]),
+            image=images[i].copy(),
+            mask=masks[i] != 0 if has_mask[i] else None,
+            T_world_cam=poses[i].copy(),
+            confidence_map=confidence[i].copy(),
+            local_points=points[i].copy(),
+            mean_confidence=float(mean_confidence[i]),
+        )
+        for i, keyframe_id in enumerate(info.keyframe_ids)
+    )
+
+
+def map_from_tensors(
+    tensors: Mapping[str, torch.Tensor],
+    info: MapInfo,
+    source: str,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> KeyframeMap:
+    """Rebuild the KeyframeMap from a file's (validated, verified) tensors.
+
+    The K/V are copied once into the cache's preallocated buffers; with ``dtype``/``device``
+    the cache is then converted (one more copy, only when they differ from the file's).
+    """
+    keyframes = _keyframes(tensors, info, source)
+    layers = range(info.layout.num_layers)
+    try:
+        cache = KVCache.from_layers(
+            [tensors[layer_key(i)] for i in layers],
+            [tensors[layer_value(i)] for i in layers],
+            layout=info.layout,
+            tokens_per_frame=info.tokens_per_frame,
+            keyframe_ids=info.cache_keyframe_ids,
+        )
+    except CacheError as exc:  # the schema check makes this unreachable for valid headers
+        raise MapCorruptedError(f"{source}: the K/V tensors do not form a cache: {exc}") from exc
+    if (dtype is not None and dtype != cache.dtype) or (
+        device is not None and torch.device(device) != cache.device
+    ):
+        cache = cache.to(dtype=dtype, device=device)
+    return KeyframeMap(
+        keyframes=keyframes,
+        cache=cache,
+        gauge=info.gauge,
+        generation=info.generation,
+        resolution=info.resolution,
+        metadata=dict(info.user_metadata),
+    )
