@@ -209,6 +209,17 @@ class KVCache:
                 self._values[i][:, :, start:stop].copy_(v.reshape(expected))
             self._keyframe_ids.append(int(keyframe_id))
 
+    def relabel_keyframes(self, keyframe_ids: Sequence[int]) -> None:
+        """Rename the cached keyframes, in cache order (a backend numbers a mapping pass 0..N-1;
+        the tracker gives them its session-wide keyframe ids). The K/V are not touched."""
+        ids = [int(i) for i in keyframe_ids]
+        if len(ids) != self.num_keyframes or len(set(ids)) != len(ids):
+            raise CacheError(
+                f"need {self.num_keyframes} distinct keyframe ids, got {list(keyframe_ids)}"
+            )
+        with self.lock:
+            self._keyframe_ids = ids
+
     def drop_keyframes(self, keyframe_ids: Sequence[int]) -> None:
         """Remove keyframes, compacting the buffers in place (order of the rest is kept)."""
         unknown = set(keyframe_ids) - set(self._keyframe_ids)

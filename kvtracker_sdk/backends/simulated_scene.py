@@ -1,0 +1,271 @@
+"""The world behind ``SimulatedBackend``: a ground-truth trajectory, a simple scene to measure
+depth in, and a camera whose images carry their frame index.
+
+* ``GroundTruth``: timestamps and ``T_world_cam`` poses, e.g. TUM fr2_desk's 100 s motion-capture
+  trajectory resampled to 30 Hz.
+* ``SimulatedScene``: an axis-aligned room around the trajectory plus one sphere (the "object",
+  placed where the cameras look). Depth per pixel comes from ray casting, so depth maps, masks and
+  object points are geometrically consistent with the poses.
+* Frame code: image pixels carry the frame index in their red and green channels
+  (R = 16 + index // 224, G = 16 + index % 224; black, the object-mode background, never encodes
+  a frame). A flat code survives resizing, cropping and masking; blue holds an optional texture.
+
+Pinhole intrinsics scale with the image: fx = fy = 0.81 W (TUM's 520 px at 640 px), principal
+point at the centre. Object-mode crops change the true intrinsics; the simulation ignores that.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from kvtracker_sdk.errors import BackendError, TrajectoryError
+from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
+
+__all__ = [
+    "GroundTruth",
+    "SimulatedCamera",
+    "SimulatedFrame",
+    "SimulatedScene",
+    "decode_frame_index",
+    "encode_frame_index",
+    "look_at",
+    "orbit",
+    "pixel_rays",
+]
+
+_CODE_BASE = 224  # digits per channel
+_CODE_OFFSET = 16  # smallest code value: black (masked background) never decodes
+MAX_FRAMES = _CODE_BASE * _CODE_BASE
+FOCAL_PER_WIDTH = 0.81
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """A camera trajectory: ``timestamps`` [F] seconds, ``poses`` [F, 4, 4] T_world_cam."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
+            raise TrajectoryError(f"poses must be [F, 4, 4], got {self.poses.shape}")
+        if len(self.timestamps) != len(self.poses) or not 0 < len(self.poses) <= MAX_FRAMES:
+            raise TrajectoryError(
+                f"need 1..{MAX_FRAMES} poses with one timestamp each, got "
+                f"{len(self.poses)} poses and {len(self.timestamps)} timestamps"
+            )
+        for array in (self.timestamps, self.poses):
+            array.setflags(write=False)
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @classmethod
+    def from_tum(cls, path: str | Path, *, rate_hz: float | None = 30.0) -> GroundTruth:
+        """Read a TUM trajectory (``t tx ty tz qx qy qz qw``) and resample it to ``rate_hz``.
+
+        Resampling picks, for each tick of a ``rate_hz`` clock, the nearest recorded pose (the
+        motion capture runs at ~300 Hz, a camera at 30 Hz). ``rate_hz=None`` keeps every pose.
+        """
+        try:
+            data = np.loadtxt(path, comments="#", ndmin=2)
+        except (OSError, ValueError) as exc:
+            raise TrajectoryError(f"cannot read TUM trajectory {path}: {exc}") from exc
+        if data.shape[1] != 8 or not np.all(np.isfinite(data)):
+            raise TrajectoryError(f"{path}: expected 8 finite columns, got shape {data.shape}")
+        if rate_hz is not None:
+            ticks = np.arange(data[0, 0], data[-1, 0], 1.0 / rate_hz)
+            nearest = np.clip(np.searchsorted(data[:, 0], ticks), 1, len(data) - 1)
+            left_closer = ticks - data[nearest - 1, 0] < data[nearest, 0] - ticks
+            data = data[nearest - left_closer.astype(int)]
+        poses = np.tile(np.eye(4), (len(data), 1, 1))
+        poses[:, :3, :3] = rotation_from_quat_xyzw(data[:, 4:8])
+        poses[:, :3, 3] = data[:, 1:4]
+        return cls(data[:, 0].copy(), poses)
+
+
+def look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """T_world_cam of a camera at ``centre`` looking at ``target`` (OpenCV axes, y towards -up)."""
+    forward = (target - centre) / np.linalg.norm(target - centre)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, np.cross(forward, right), forward], axis=1)
+    pose[:3, 3] = centre
+    return pose
+
+
+def orbit(
+    num_frames: int,
+    *,
+    radius: float = 1.5,
+    height: float = 0.4,
+    turns: float = 1.0,
+    rate_hz: float = 30.0,
+) -> GroundTruth:
+    """A camera circling the origin (world z up) at ``radius`` and ``height``, always looking at
+    it: the natural object-mode trajectory (``SimulatedScene.around`` puts the sphere there)."""
+    angles = np.linspace(0.0, 2.0 * np.pi * turns, num_frames, endpoint=False)
+    target, up = np.zeros(3), np.array([0.0, 0.0, 1.0])
+    poses = np.stack(
+        [
+            look_at(np.array([radius * np.cos(a), radius * np.sin(a), height]), target, up)
+            for a in angles
+        ]
+    )
+    return GroundTruth(np.arange(num_frames) / rate_hz, poses)
+
+
+def pixel_rays(size: tuple[int, int]) -> np.ndarray:
+    """[H, W, 3] camera-frame rays with z = 1 (so a ray times the depth is the local point)."""
+    height, width = size
+    focal = FOCAL_PER_WIDTH * width
+    u = (np.arange(width) + 0.5 - width / 2.0) / focal
+    v = (np.arange(height) + 0.5 - height / 2.0) / focal
+    rays = np.empty((height, width, 3))
+    rays[..., 0] = u[None, :]
+    rays[..., 1] = v[:, None]
+    rays[..., 2] = 1.0
+    return rays
+
+
+@dataclass(frozen=True)
+class SimulatedScene:
+    """A box room [room_min, room_max] and a sphere (centre, radius), all in metres (world)."""
+
+    room_min: np.ndarray
+    room_max: np.ndarray
+    object_centre: np.ndarray
+    object_radius: float
+
+    @classmethod
+    def around(
+        cls, poses: np.ndarray, *, margin: float = 2.0, radius: float = 0.3
+    ) -> SimulatedScene:
+        """A room enclosing the trajectory by ``margin`` and a sphere where the optical axes meet.
+
+        The sphere centre is the least-squares point closest to every camera's optical axis.
+        """
+        centres = poses[:, :3, 3]
+        axes = poses[:, :3, 2]
+        projector = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - a a^T per camera
+        target = np.linalg.solve(projector.sum(0), np.einsum("nij,nj->i", projector, centres))
+        return cls(centres.min(0) - margin, centres.max(0) + margin, target, radius)
+
+    def depth(self, T_world_cam: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(depth [H, W] metres along camera z, object mask [H, W]) by ray casting ``rays``."""
+        R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        directions = rays @ R.T  # world-frame ray directions, |d| >= 1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            exits = np.where(directions > 0, self.room_max - c, self.room_min - c) / directions
+        room = np.min(np.where(np.isfinite(exits) & (exits > 0), exits, np.inf), axis=-1)
+        offset = c - self.object_centre
+        b = directions @ offset
+        a = np.einsum("...i,...i->...", directions, directions)
+        disc = b * b - a * (offset @ offset - self.object_radius**2)
+        hit = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0.0))) / a, np.inf)
+        on_object = (disc >= 0) & (hit > 0) & (hit < room)
+        return np.where(on_object, hit, room), on_object
+
+
+def encode_frame_index(index: int) -> tuple[int, int]:
+    """(red, green) code of a frame index."""
+    if not 0 <= index < MAX_FRAMES:
+        raise BackendError(f"frame index {index} cannot be encoded (0..{MAX_FRAMES - 1})")
+    return _CODE_OFFSET + index // _CODE_BASE, _CODE_OFFSET + index % _CODE_BASE
+
+
+@functools.lru_cache(maxsize=16)
+def _sample_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of a 9x9 grid of pixels spanning the image."""
+    rows = np.linspace(0, height - 1, 9).astype(int)
+    cols = np.linspace(0, width - 1, 9).astype(int)
+    return np.repeat(rows, 9), np.tile(cols, 9)
+
+
+def decode_frame_index(image: np.ndarray) -> int:
+    """The frame index an image [H, W, 3] uint8 carries; BackendError if it carries none.
+
+    Reads a sparse grid of pixels first (cheap), all pixels if the grid misses the coded region
+    (a small masked object), and takes the most common code among non-background pixels.
+    """
+    rows, cols = _sample_grid(image.shape[0], image.shape[1])
+    for pixels in (image[rows, cols], image.reshape(-1, 3)):
+        red = pixels[:, 0].astype(np.int64)
+        green = pixels[:, 1].astype(np.int64)
+        coded = (
+            (red >= _CODE_OFFSET) & (green >= _CODE_OFFSET) & (green < _CODE_OFFSET + _CODE_BASE)
+        )
+        if coded.any():
+            codes = (red[coded] - _CODE_OFFSET) * _CODE_BASE + green[coded] - _CODE_OFFSET
+            values, counts = np.unique(codes, return_counts=True)
+            if counts.max() * 2 >= coded.sum():  # a majority: a natural photo has no such plateau
+                return int(values[np.argmax(counts)])
+    raise BackendError(
+        "the image carries no simulated frame code: SimulatedBackend needs "
+        "frames rendered by SimulatedCamera"
+    )
+
+
+@dataclass(frozen=True)
+class SimulatedFrame:
+    """One rendered frame with its ground truth."""
+
+    index: int
+    timestamp: float
+    image: np.ndarray  # uint8 [H, W, 3]
+    T_world_cam: np.ndarray  # ground-truth pose, float64 [4, 4]
+    mask: np.ndarray | None  # bool [H, W]: the object's pixels (if requested)
+
+
+class SimulatedCamera:
+    """Renders frames of a ground-truth trajectory at ``size`` = (H, W).
+
+    ``textured`` paints a checkerboard on the room and the object into the blue channel (ray cast
+    per frame: pleasant in a viewer, slower); without it blue is flat and rendering is ~free.
+    """
+
+    def __init__(
+        self,
+        ground_truth: GroundTruth,
+        scene: SimulatedScene,
+        *,
+        size: tuple[int, int] = (240, 320),
+        textured: bool = True,
+    ) -> None:
+        self.ground_truth = ground_truth
+        self.scene = scene
+        self.size = (int(size[0]), int(size[1]))
+        self.textured = textured
+        self._rays = pixel_rays(self.size)
+
+    def render(self, index: int, *, with_mask: bool = False) -> SimulatedFrame:
+        """Frame ``index``; ``with_mask`` adds the object's mask (needs a ray cast)."""
+        pose = self.ground_truth.poses[index]
+        red, green = encode_frame_index(index)
+        image = np.empty((*self.size, 3), dtype=np.uint8)
+        image[..., 0], image[..., 1], image[..., 2] = red, green, 128
+        mask = None
+        if self.textured or with_mask:
+            depth, on_object = self.scene.depth(pose, self._rays)
+            if self.textured:
+                points = (self._rays * depth[..., None]) @ pose[:3, :3].T + pose[:3, 3]
+                checker = np.floor(points / 0.25).astype(np.int64).sum(axis=-1) % 2
+                shade = np.clip(255.0 / (1.0 + 0.3 * depth), 40, 255)
+                image[..., 2] = (
+                    shade * (0.55 + 0.45 * checker) * np.where(on_object, 0.7, 1.0)
+                ).astype(np.uint8)
+            mask = on_object if with_mask else None
+        return SimulatedFrame(index, float(self.ground_truth.timestamps[index]), image, pose, mask)
+
+    def frames(
+        self, start: int = 0, stop: int | None = None, step: int = 1, *, with_mask: bool = False
+    ) -> Iterator[SimulatedFrame]:
+        """Frames ``start:stop:step`` of the trajectory, rendered lazily."""
+        for index in range(start, len(self.ground_truth) if stop is None else stop, step):
+            yield self.render(index, with_mask=with_mask)

@@ -1,0 +1,250 @@
+"""``TrackerConfig``: every knob of the tracker, frozen and validated (pydantic v2).
+
+Each default that comes from the KV-Tracker paper (Taher et al., "KV-Tracker: Real-Time Pose
+Tracking with Transformers", CVPR 2026) or from the SDK's design document
+(``../shared/docs/design.md``) names its source in the field's docstring; the rest are SDK
+choices and say why.
+
+Build a config with keyword arguments or a nested dict; invalid values raise
+:class:`~kvtracker_sdk.errors.ConfigError` (pydantic's ``ValidationError`` is wrapped)::
+
+    TrackerConfig(mode="object", keyframing={"view_angle_deg": 15.0})
+    TrackerConfig.from_dict(json.loads(text))
+    config.updated(threading={"async_mapping": True})  # a validated copy
+
+Sections are frozen too, so a config can be shared between threads and stored in a map file
+(``config.to_dict()`` is JSON-ready).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Mapping
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.types import HeadSet
+
+__all__ = [
+    "BudgetConfig",
+    "DebugConfig",
+    "EvictionPolicy",
+    "KeyframingConfig",
+    "ObjectConfig",
+    "ObjectPreprocessing",
+    "RejectionConfig",
+    "RelocalizationConfig",
+    "ThreadingConfig",
+    "TimeoutPolicy",
+    "TrackerConfig",
+    "TrackingMode",
+]
+
+
+class TrackingMode(str, enum.Enum):
+    """Scene tracking (the camera in a static scene) or object tracking (a masked object)."""
+
+    SCENE = "scene"
+    OBJECT = "object"
+
+
+class EvictionPolicy(str, enum.Enum):
+    """Which keyframe leaves the map when the budget is full (keyframe 0 never does)."""
+
+    OLDEST = "oldest"  # first in, first out
+    REDUNDANT = "redundant"  # the keyframe whose pose is closest to another keyframe's
+
+
+class TimeoutPolicy(str, enum.Enum):
+    """What relocalisation does after ``timeout_frames`` frames without recovering."""
+
+    STAY = "stay"  # keep relocalising against the map (the map may come back into view)
+    RESET = "reset"  # drop the map, back to INIT
+    NEW_MAP = "new_map"  # drop the map and bootstrap a new one from the current frame
+
+
+class ObjectPreprocessing(str, enum.Enum):
+    """How object mode restricts the model's input to the object."""
+
+    MASK = "mask"  # pixels outside the mask (or bbox) become black
+    CROP = "crop"  # crop to the mask's (or bbox's) box dilated by ``crop_margin_px``
+
+
+def _error_lines(error: ValidationError, prefix: tuple[object, ...] = ()) -> list[str]:
+    """One line per invalid value, with the full dotted path (nested sections flattened)."""
+    lines: list[str] = []
+    for item in error.errors():
+        loc = prefix + tuple(item["loc"])
+        inner = item.get("ctx", {}).get("error")
+        if isinstance(inner, ConfigError) and isinstance(inner.__cause__, ValidationError):
+            lines.extend(_error_lines(inner.__cause__, loc))  # a nested section's own __init__
+            continue
+        path = ".".join(str(p) for p in loc) or "<root>"
+        lines.append(f"{path}: {item['msg']} (got {item.get('input')!r})")
+    return lines
+
+
+class _Section(BaseModel):
+    """Frozen, strict-keys base: unknown keys are errors, not silently ignored.
+
+    ``__init__`` re-raises pydantic's ValidationError as ConfigError, for top-level configs and for
+    sections built on their own alike.
+    """
+
+    model_config = ConfigDict(
+        frozen=True, extra="forbid", validate_default=True, use_attribute_docstrings=True
+    )
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            details = "; ".join(_error_lines(exc))
+            raise ConfigError(f"invalid {type(self).__name__}: {details}") from exc
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise ConfigError(
+            f"{type(self).__name__} is frozen; make a changed copy with TrackerConfig.updated(...)"
+        )
+
+
+class BudgetConfig(_Section):
+    """Upper bounds on the map; when a new keyframe would exceed them, one is evicted."""
+
+    max_keyframes: int | None = Field(default=32, ge=2)
+    """At most this many keyframes (None: no count limit). SDK default, not from the paper: a
+    rebuild costs O((N·M)²) in the number of keyframes N, so the map needs a bound."""
+
+    max_cache_bytes: int | None = Field(default=None, gt=0)
+    """At most this many bytes of K/V (None: no byte limit). Full Pi3 at d=308 in fp32 needs about
+    72 MB per keyframe (489 tokens x 18 layers x 16 heads x 64 dims x K,V x 4 bytes). A budget below
+    two keyframes keeps only keyframe 0 (design doc: budget "count or bytes")."""
+
+    eviction: EvictionPolicy = EvictionPolicy.REDUNDANT
+    """Which keyframe to drop; keyframe 0 (the world anchor) is never dropped (design doc)."""
+
+
+class KeyframingConfig(_Section):
+    """When a tracked frame becomes a keyframe."""
+
+    interval_frames: int = Field(default=50, ge=1)
+    """Scene mode: a keyframe every this many frames (KV-Tracker paper, scene tracking)."""
+
+    view_angle_deg: float = Field(default=10.0, gt=0.0, lt=180.0)
+    """Object mode: a keyframe when the camera's azimuth or elevation around the object centre
+    differs from every keyframe's by more than this (KV-Tracker paper, object tracking)."""
+
+    budget: BudgetConfig = BudgetConfig()
+
+
+class RejectionConfig(_Section):
+    """Undo a rebuild whose new keyframe the model is unsure about."""
+
+    enabled: bool = True
+    ratio: float = Field(default=0.6, gt=0.0, le=1.0)
+    """Reject when the new keyframe's (masked) mean confidence is below ``ratio`` x keyframe 0's
+    in the same mapping pass (KV-Tracker paper: 0.6)."""
+
+    retry_after_frames: int = Field(default=15, ge=1)
+    """Frames to wait after a rejected candidate before proposing another (SDK choice: while the
+    view stays bad, object mode would otherwise rebuild the map on every frame)."""
+
+
+class RelocalizationConfig(_Section):
+    """Confidence-based loss detection and recovery (SDK defaults; the paper does not fix them)."""
+
+    confidence_threshold: float = Field(default=0.5, gt=0.0, le=1.0)
+    """A tracked frame is confident when its (masked) mean confidence is at least this fraction of
+    keyframe 0's. Relative, like the paper's rejection rule, so that it does not depend on one
+    model's absolute confidence scale."""
+
+    lost_after: int = Field(default=3, ge=1)
+    """Consecutive low-confidence frames before TRACKING -> RELOCALIZING (0.1 s at 30 Hz)."""
+
+    recover_after: int = Field(default=3, ge=1)
+    """Consecutive confident frames before RELOCALIZING -> TRACKING."""
+
+    timeout_frames: int | None = Field(default=300, ge=1)
+    """Frames in RELOCALIZING before ``timeout_policy`` acts (10 s at 30 Hz; None: never)."""
+
+    timeout_policy: TimeoutPolicy = TimeoutPolicy.STAY
+
+
+class ObjectConfig(_Section):
+    """Object-mode preprocessing of each frame (design doc: "mask -> black background, or the
+    mask's bbox dilated by N px")."""
+
+    preprocessing: ObjectPreprocessing = ObjectPreprocessing.MASK
+    crop_margin_px: int = Field(default=50, ge=0)
+    """Dilation of the crop box, in input-image pixels (KV-Tracker paper / design doc: 50 px)."""
+
+
+class ThreadingConfig(_Section):
+    """Where map rebuilds run."""
+
+    async_mapping: bool = False
+    """Rebuild on a worker thread while ``push_frame`` keeps tracking against the previous map; the
+    new map is swapped in atomically at a later ``push_frame`` (design doc, optional)."""
+
+
+class DebugConfig(_Section):
+    """Switches for measuring what a component buys; keep the defaults in production."""
+
+    gauge_alignment: bool = True
+    """Align every rebuild to the previous map by Sim(3). Off: poses stay in each mapping pass's
+    own raw frame and scale (the world frame jumps on every rebuild)."""
+
+
+class TrackerConfig(_Section):
+    """Everything the ``Tracker`` can be told. Frozen; see the module docstring for construction."""
+
+    mode: TrackingMode = TrackingMode.SCENE
+    resolution: Literal[224, 308, 518] = 308
+    """Model input side d: images are resized (aspect kept, multiples of the patch size) to at
+    most d² pixels (KV-Tracker paper: 224, 308 or 518; 308 is its real-time setting)."""
+
+    keyframing: KeyframingConfig = KeyframingConfig()
+    rejection: RejectionConfig = RejectionConfig()
+    relocalization: RelocalizationConfig = RelocalizationConfig()
+    object: ObjectConfig = ObjectConfig()
+    threading: ThreadingConfig = ThreadingConfig()
+    heads: HeadSet = HeadSet.CONFIDENCE
+    """Heads computed per tracked frame. CONFIDENCE is the default because loss detection needs
+    confidence; CAMERA is faster but then every frame counts as confident."""
+
+    debug: DebugConfig = DebugConfig()
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> TrackerConfig:
+        """Validate a nested dict (e.g. from JSON or a map file); raises ConfigError."""
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"a config must be a mapping, got {type(data).__name__}")
+        return cls(**dict(data))
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready nested dict (enums as their values); ``from_dict`` reads it back."""
+        return self.model_dump(mode="json")
+
+    def updated(self, **changes: Any) -> TrackerConfig:
+        """A validated copy with ``changes``; nested sections merge (``keyframing={...}``)."""
+        data = self.to_dict()
+        for key, value in changes.items():
+            if isinstance(value, BaseModel):
+                value = value.model_dump(mode="json")
+            if isinstance(value, Mapping) and isinstance(data.get(key), dict):
+                data[key] = _merge(data[key], value)
+            else:
+                data[key] = value
+        return TrackerConfig.from_dict(data)
+
+
+def _merge(base: dict[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in changes.items():
+        if isinstance(value, Mapping) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out

@@ -1,0 +1,147 @@
+"""One map rebuild: a mapping pass over the kept keyframes plus a candidate, aligned into the world
+frame, turned into a new ``KeyframeMap``, and judged by the rejection rule.
+
+Pure with respect to the tracker: it reads an immutable request (the previous map is a frozen
+``KeyframeMap``) and returns an immutable outcome, so it can run on the mapping worker thread while
+the tracker keeps tracking against the previous map. Installing the outcome is the tracker's job.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from kvtracker_sdk.backends.base import Backend
+from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+from kvtracker_sdk.config import RejectionConfig
+from kvtracker_sdk.errors import BackendError
+from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.tracking.gauge import (
+    Correction,
+    anchor_gauge,
+    depth_scale,
+    estimate_gauge,
+    keyframe_corrections,
+)
+from kvtracker_sdk.tracking.quality import masked_mean
+
+__all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map"]
+
+
+@dataclass(frozen=True)
+class KeyframeCandidate:
+    """A tracked frame proposed as a keyframe (image and mask at model resolution)."""
+
+    keyframe_id: int
+    frame_index: int
+    timestamp: float | None
+    image: np.ndarray  # uint8 [h, w, 3]
+    mask: np.ndarray | None  # bool [h, w]
+
+
+@dataclass(frozen=True)
+class RebuildRequest:
+    """What to map: ``keep`` (keyframe 0 first, world frame) plus ``candidate``.
+
+    ``previous`` is None for a bootstrap (first map, or a new map after a relocalisation timeout):
+    then ``keep`` is empty and the candidate becomes keyframe 0 at the identity.
+    """
+
+    previous: KeyframeMap | None
+    keep: tuple[Keyframe, ...]
+    evicted: tuple[int, ...]
+    candidate: KeyframeCandidate
+    cause: str  # "bootstrap", "keyframe", "new_map"
+    generation: int  # generation the new map gets if accepted
+
+
+@dataclass(frozen=True)
+class RebuildOutcome:
+    """The rebuilt map and the rejection verdict."""
+
+    request: RebuildRequest
+    new_map: KeyframeMap
+    accepted: bool
+    candidate_confidence: float  # the candidate's (masked) mean confidence in this pass
+    reference_confidence: float  # keyframe 0's in this pass
+    correction: Correction  # how the kept keyframes moved in the world frame
+    map_ms: float
+
+
+def _stack_masks(masks: Sequence[np.ndarray | None], size: tuple[int, int]) -> np.ndarray | None:
+    """[N, h, w] masks for the pass: None if no frame has one, all-true where one lacks it."""
+    if all(m is None for m in masks):
+        return None
+    return np.stack([m if m is not None else np.ones(size, dtype=bool) for m in masks])
+
+
+def _gauge(
+    request: RebuildRequest, raw_poses: np.ndarray, raw_points: np.ndarray, align: bool
+) -> Sim3:
+    if not align:
+        return Sim3.identity()  # debug: stay in the pass's raw frame
+    if request.previous is None or not request.keep:
+        return anchor_gauge(raw_poses[0])
+    shared = len(request.keep)
+    scale = depth_scale(
+        [kf.local_points for kf in request.keep],
+        list(raw_points[:shared]),
+        [kf.mask for kf in request.keep],
+    )
+    world_poses = np.stack([kf.T_world_cam for kf in request.keep])
+    return estimate_gauge(world_poses, raw_poses[:shared], scale)
+
+
+def build_map(
+    backend: Backend,
+    request: RebuildRequest,
+    *,
+    rejection: RejectionConfig,
+    align_gauge: bool = True,
+) -> RebuildOutcome:
+    """Run the mapping pass for ``request`` and build the new map (see module docstring)."""
+    start = time.perf_counter()
+    sources: list[Keyframe | KeyframeCandidate] = [*request.keep, request.candidate]
+    images = np.stack([s.image for s in sources])  # [N, h, w, 3] uint8
+    size = (int(images.shape[1]), int(images.shape[2]))
+    result = backend.map(images, _stack_masks([s.mask for s in sources], size))
+    if result.num_frames != len(sources) or result.cache.num_keyframes != len(sources):
+        raise BackendError(
+            f"mapping pass over {len(sources)} frames returned {result.num_frames} poses and a "
+            f"cache of {result.cache.num_keyframes} keyframes"
+        )
+    gauge = _gauge(request, result.poses, result.local_points, align_gauge)
+    world_poses = gauge.apply_to_pose(result.poses)
+    keyframes = tuple(
+        Keyframe(
+            keyframe_id=source.keyframe_id,
+            frame_index=source.frame_index,
+            timestamp=source.timestamp,
+            image=source.image,
+            mask=source.mask,
+            T_world_cam=world_poses[i],
+            confidence_map=result.confidence[i],
+            local_points=result.local_points[i] * np.float32(gauge.scale),  # world scale
+            mean_confidence=masked_mean(result.confidence[i], source.mask),
+        )
+        for i, source in enumerate(sources)
+    )
+    cache = result.cache
+    cache.relabel_keyframes([kf.keyframe_id for kf in keyframes])
+    new_map = KeyframeMap(keyframes, cache, gauge, generation=request.generation, resolution=size)
+    reference = keyframes[0].mean_confidence
+    candidate = keyframes[-1].mean_confidence
+    judged = request.previous is not None and rejection.enabled
+    accepted = not judged or candidate >= rejection.ratio * reference
+    return RebuildOutcome(
+        request=request,
+        new_map=new_map,
+        accepted=accepted,
+        candidate_confidence=candidate,
+        reference_confidence=reference,
+        correction=keyframe_corrections(request.keep, keyframes),
+        map_ms=(time.perf_counter() - start) * 1e3,
+    )
