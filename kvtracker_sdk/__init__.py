@@ -17,6 +17,7 @@ from kvtracker_sdk.errors import (
     CacheError,
     CheckpointMismatchError,
     ConfigError,
+    EvaluationError,
     IllegalTransitionError,
     ImageDtypeError,
     ImageShapeError,
@@ -25,6 +26,7 @@ from kvtracker_sdk.errors import (
     MapCorruptedError,
     MapError,
     MapFormatError,
+    MapIOError,
     MapModelMismatchError,
     MapVersionError,
     MaskError,
@@ -32,16 +34,22 @@ from kvtracker_sdk.errors import (
     ModelError,
     NonFiniteImageError,
     ResolutionChangedError,
+    SourceError,
     StateError,
+    TrajectoryError,
     WeightsNotFoundError,
 )
+from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.types import FrameResult, HeadSet, MapStatus, Pose, StateReason, TrackingState
 
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+    from kvtracker_sdk.backends.simulated import SimulatedBackend
+    from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+    from kvtracker_sdk.tracking.tracker import Tracker
 
 # public name -> module that defines it (loaded lazily)
 _LAZY: dict[str, str] = {
@@ -53,6 +61,9 @@ _LAZY: dict[str, str] = {
     "KVCache": "kvtracker_sdk.cache.kv_cache",
     "Keyframe": "kvtracker_sdk.cache.keyframe_map",
     "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
+    "SimulatedBackend": "kvtracker_sdk.backends.simulated",
+    "TorchBackend": "kvtracker_sdk.backends.torch_backend",
+    "Tracker": "kvtracker_sdk.tracking.tracker",
 }
 
 __all__ = [
@@ -65,6 +76,7 @@ __all__ = [
     "CacheLayout",
     "CheckpointMismatchError",
     "ConfigError",
+    "EvaluationError",
     "FrameResult",
     "HeadSet",
     "IllegalTransitionError",
@@ -78,6 +90,7 @@ __all__ = [
     "MapCorruptedError",
     "MapError",
     "MapFormatError",
+    "MapIOError",
     "MapModelMismatchError",
     "MapResult",
     "MapStatus",
@@ -89,10 +102,16 @@ __all__ = [
     "Pose",
     "ResolutionChangedError",
     "Sim3",
+    "SimulatedBackend",
+    "SourceError",
     "StateError",
     "StateReason",
+    "TorchBackend",
     "TrackResult",
+    "Tracker",
+    "TrackerConfig",
     "TrackingState",
+    "TrajectoryError",
     "WeightsNotFoundError",
     "__version__",
 ]
