@@ -1,0 +1,119 @@
+"""Checkpoint helpers shared by the model families: locating weights, strict key checks, hashing.
+
+- ``resolve_weights(weights)``: a path to a ``.safetensors`` file; a folder containing
+  ``model.safetensors`` (the layout of the hub repositories ``yyfz233/Pi3`` and
+  ``depth-anything/DA3-*``); or a hub repo id, fetched through ``huggingface_hub`` (imported only
+  then; the ``[hub]`` extra). Offline or unknown repos raise ``WeightsNotFoundError`` whose message
+  says how to pass a local file instead. Only safetensors are read: pickled checkpoints
+  (``.pth``/``.bin``) can run code when loaded.
+- ``check_state_dict(model, state_dict)``: ``CheckpointMismatchError`` listing missing,
+  unexpected and wrongly shaped keys (run against a model built on the meta device, before any
+  tensor is assigned).
+- ``weights_fingerprint(state_dict)``: a hash of the tensors' names, dtypes, shapes and bytes
+  (not the file path), so the same weights give the same fingerprint wherever they are stored.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from kvtracker_sdk.errors import (
+    CheckpointMismatchError,
+    MissingDependencyError,
+    ModelError,
+    WeightsNotFoundError,
+)
+
+__all__ = ["DEFAULT_FILENAME", "check_state_dict", "resolve_weights", "weights_fingerprint"]
+
+DEFAULT_FILENAME = "model.safetensors"
+_REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
+_LISTED = 20  # keys listed per category in an error message
+
+
+def resolve_weights(weights: str | os.PathLike[str], *, filename: str = DEFAULT_FILENAME) -> Path:
+    """The local safetensors file that ``weights`` (file, folder or hub repo id) designates."""
+    candidate = Path(weights).expanduser()
+    if candidate.is_file():
+        if candidate.suffix != ".safetensors":
+            raise ModelError(
+                f"{candidate}: only .safetensors checkpoints are supported (pickles can run code)"
+            )
+        return candidate
+    if candidate.is_dir():
+        inside = candidate / filename
+        if inside.is_file():
+            return inside
+        raise WeightsNotFoundError(f"folder {candidate} has no {filename}")
+    text = os.fspath(weights)
+    if _REPO_ID.match(text):
+        return _download(text, filename)
+    raise WeightsNotFoundError(
+        f"{text!r} is neither an existing .safetensors file, a folder containing {filename}, "
+        "nor a hub repo id like 'yyfz233/Pi3' or 'depth-anything/DA3-SMALL'"
+    )
+
+
+def _download(repo_id: str, filename: str) -> Path:
+    try:
+        from huggingface_hub import hf_hub_download
+    except ImportError as exc:
+        raise MissingDependencyError(
+            f"loading {repo_id!r} from the hub needs huggingface_hub: pip install 'kvtracker-sdk[hub]', "
+            f"or pass the path of a local {filename}"
+        ) from exc
+    try:
+        return Path(hf_hub_download(repo_id=repo_id, filename=filename))
+    # Offline mode, no network, unknown repo or file, auth: for the caller all mean "not found".
+    except Exception as exc:
+        raise WeightsNotFoundError(
+            f"could not get {filename} of hub repo {repo_id!r} ({type(exc).__name__}: {exc}). "
+            f"Download it on a machine with network access and pass the local file or its folder "
+            f"instead, e.g. TorchBackend.from_pretrained('/path/to/{filename}')"
+        ) from exc
+
+
+def check_state_dict(model: nn.Module, state_dict: Mapping[str, torch.Tensor]) -> None:
+    """Raise ``CheckpointMismatchError`` unless keys and shapes equal the model's exactly."""
+    expected = {key: tuple(value.shape) for key, value in model.state_dict().items()}
+    missing = sorted(set(expected) - set(state_dict))
+    unexpected = sorted(set(state_dict) - set(expected))
+    mismatched = [
+        (key, tuple(state_dict[key].shape), shape)
+        for key, shape in expected.items()
+        if key in state_dict and tuple(state_dict[key].shape) != shape
+    ]
+    if not (missing or unexpected or mismatched):
+        return
+    lines = [f"checkpoint does not match the model ({type(model).__name__})"]
+    for title, items in (
+        ("missing", missing),
+        ("unexpected", unexpected),
+        (
+            "wrong shape (checkpoint vs model)",
+            [f"{k}: {got} vs {want}" for k, got, want in mismatched],
+        ),
+    ):
+        if items:
+            more = f" (+{len(items) - _LISTED} more)" if len(items) > _LISTED else ""
+            lines.append(f"  {title} [{len(items)}]: {', '.join(items[:_LISTED])}{more}")
+    raise CheckpointMismatchError(
+        "\n".join(lines), missing=missing, unexpected=unexpected, shape_mismatches=mismatched
+    )
+
+
+def weights_fingerprint(state_dict: Mapping[str, torch.Tensor]) -> str:
+    """Content hash (32 hex chars) of names, dtypes, shapes and bytes, independent of key order."""
+    digest = hashlib.blake2b(digest_size=16)
+    for key in sorted(state_dict):
+        tensor = state_dict[key].detach().to("cpu").contiguous()
+        digest.update(f"{key}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
+        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().data)
+    return digest.hexdigest()

@@ -1,0 +1,181 @@
+"""Multi-head self-attention with optional qk-norm and RoPE2D, usable with a KV cache.
+
+One module, one computation::
+
+    qkv Linear (output channels [q | k | v], head-major inside each)
+    -> split into heads                         q, k, v: [B, heads, L, head_dim]
+    -> q_norm(q), k_norm(k)                     optional LayerNorm over head_dim, shared by heads
+    -> RoPE2D on q and k                        optional (a ``RopeTable`` passed at call time)
+    -> F.scaled_dot_product_attention           scale 1/sqrt(head_dim); V gets no norm, no RoPE
+    -> proj Linear
+
+SDPA runs with PyTorch's default kernel selection, so the fused (flash) kernels are used on CPU and
+GPU, in fp32 and bf16. A boolean ``attn_mask`` follows SDPA's convention: True = may attend.
+
+Three uses, which differ only in where K and V come from and go to:
+
+- ``forward``: plain attention over the input sequence.
+- ``forward_map``: also returns this layer's K (after k_norm and RoPE) and V, exactly as they
+  enter the attention — what a KV cache stores.
+- ``forward_track``: the input's own K/V are written into a cache buffer's scratch region right
+  after the cached tokens, and the queries attend over ``buffer[:, :, :length + own]``. Only the
+  new tokens are copied; the cache is never concatenated.
+
+``CacheBuffers`` is the structural type the models layer needs from a cache (the cache package
+implements it; models may not import it).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.models.layers.rope2d import RopeTable
+
+__all__ = ["Attention", "CacheBuffers", "keyframe_query_mask"]
+
+
+class CacheBuffers(Protocol):
+    """Per-layer K/V buffers with spare capacity: what a tracking pass reads and scratches.
+
+    ``buffers(layer)`` returns full-capacity K and V tensors [1, heads, capacity, head_dim] of the
+    ``layer``-th cached layer (ordinal among the cached layers); tokens ``[:length]`` are cached,
+    tokens past ``length`` are scratch that a pass may overwrite.
+    """
+
+    @property
+    def length(self) -> int: ...
+
+    def ensure_capacity(self, tokens: int) -> None: ...
+
+    def buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+def keyframe_query_mask(
+    cached_tokens: int,
+    num_queries: int,
+    tokens_per_frame: int,
+    *,
+    queries_only: bool = False,
+    device: torch.device | str | None = None,
+) -> torch.Tensor:
+    """bool [S, S], S = cached_tokens + num_queries * tokens_per_frame; True = may attend.
+
+    Cached (keyframe) tokens see only cached tokens; each query frame's tokens see every cached
+    token and the tokens of their own frame. A full forward on [keyframes, queries] under this
+    mask equals tracking each query against the keyframes' cache. ``queries_only`` returns just
+    the query rows [num_queries * tokens_per_frame, S]: the mask of a tracking pass over several
+    independent queries (without building the S x S matrix).
+    """
+    # owner frame of each token: -1 for cached tokens, the query index otherwise
+    owner = torch.cat(
+        (
+            torch.full((cached_tokens,), -1, device=device),
+            torch.arange(num_queries, device=device).repeat_interleave(tokens_per_frame),
+        )
+    )
+    rows = owner[cached_tokens:] if queries_only else owner
+    return (owner.unsqueeze(0) < 0) | (owner.unsqueeze(0) == rows.unsqueeze(1))
+
+
+class Attention(nn.Module):
+    """Self-attention; parameter names match DINOv2/Pi3/DA3 (``qkv``, ``q_norm``, ``k_norm``, ``proj``)."""
+
+    def __init__(
+        self,
+        dim: int,
+        num_heads: int,
+        *,
+        qkv_bias: bool = True,
+        proj_bias: bool = True,
+        qk_norm: bool = False,
+        qk_norm_eps: float = 1e-5,
+    ) -> None:
+        super().__init__()
+        if dim % num_heads != 0:
+            raise ConfigError(f"attention dim {dim} is not divisible by num_heads {num_heads}")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.qkv = nn.Linear(dim, 3 * dim, bias=qkv_bias)
+        self.q_norm: nn.Module = (
+            nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
+        )
+        self.k_norm: nn.Module = (
+            nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
+        )
+        self.proj = nn.Linear(dim, dim, bias=proj_bias)
+
+    def project(
+        self, x: torch.Tensor, rope: RopeTable | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """q, k, v [B, heads, L, head_dim] of ``x`` [B, L, dim], q/k normed and rotated."""
+        batch, length, dim = x.shape
+        # [B, L, 3*dim] -> [3, B, heads, L, head_dim]
+        qkv = (
+            self.qkv(x)
+            .reshape(batch, length, 3, self.num_heads, self.head_dim)
+            .permute(2, 0, 3, 1, 4)
+        )
+        q, k, v = qkv.unbind(0)
+        q, k = self.q_norm(q), self.k_norm(k)
+        if rope is not None:
+            q, k = rope.apply(q), rope.apply(k)
+        return q, k, v
+
+    def _merge(self, attended: torch.Tensor) -> torch.Tensor:
+        # [B, heads, L, head_dim] -> [B, L, dim] -> proj
+        return self.proj(attended.transpose(1, 2).flatten(2))
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        *,
+        rope: RopeTable | None = None,
+        attn_mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """[B, L, dim] -> [B, L, dim]; ``attn_mask`` bool [L, L] (or broadcastable), True = attend."""
+        q, k, v = self.project(x, rope)
+        return self._merge(F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask))
+
+    def forward_map(
+        self,
+        x: torch.Tensor,
+        *,
+        rope: RopeTable | None = None,
+        attn_mask: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Like ``forward``, also returning K and V [B, heads, L, head_dim] as fed to SDPA."""
+        q, k, v = self.project(x, rope)
+        out = self._merge(F.scaled_dot_product_attention(q, k, v, attn_mask=attn_mask))
+        # v is a view of the fused qkv output: copy it so a caller keeping V does not keep qkv (3x)
+        return out, k, v.contiguous()
+
+    def forward_track(
+        self,
+        x: torch.Tensor,
+        key_buffer: torch.Tensor,
+        value_buffer: torch.Tensor,
+        past_length: int,
+        *,
+        rope: RopeTable | None = None,
+        attn_mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Attend from ``x`` [1, L, dim] over cached tokens plus its own tokens.
+
+        ``key_buffer``/``value_buffer`` [1, heads, capacity, head_dim] hold ``past_length`` cached
+        tokens and must have room for ``L`` more; this call overwrites ``[past_length:
+        past_length + L]`` with its own K/V (scratch) and attends over ``[:past_length + L]``.
+        ``attn_mask`` bool [L, past_length + L] (None: every query sees every token).
+        """
+        q, k, v = self.project(x, rope)
+        end = past_length + x.shape[1]
+        key_buffer[:, :, past_length:end].copy_(k)
+        value_buffer[:, :, past_length:end].copy_(v)
+        attended = F.scaled_dot_product_attention(
+            q, key_buffer[:, :, :end], value_buffer[:, :, :end], attn_mask=attn_mask
+        )
+        return self._merge(attended)
