@@ -59,6 +59,7 @@ CACHE_DTYPES: dict[str, tuple[str, int]] = {
     "float32": ("F32", 4),
     "float16": ("F16", 2),
     "bfloat16": ("BF16", 2),
+    "float64": ("F64", 8),  # SimulatedBackend's cache (it carries exact Sim(3) frames in its K/V)
 }
 _ITEMSIZE = {"F32": 4, "F16": 2, "BF16": 2, "F64": 8, "I64": 8, "U8": 1}
 

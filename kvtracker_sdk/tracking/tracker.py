@@ -5,6 +5,7 @@ the raw pose into the world frame through the map's gauge, judge confidence (``q
 through the state table (``states``), and maybe propose a keyframe (``keyframes``), which rebuilds
 the map inline or on the mapping worker (``mapper`` / ``map_builder``). Events are queued while the
 tracker's lock is held and delivered after it is released, on the calling thread (``events``).
+Maps are saved, loaded and exported through ``persistence``.
 
 Thread safety: every public method may be called from any thread. ``push_frame`` calls are
 serialised; ``get_pose``, ``state``, ``reason``, ``map_status`` and ``keyframe_map`` read single
@@ -26,7 +27,9 @@ from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TimeoutPolicy, TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError, MissingDependencyError, StateError
+from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.tracking import persistence
 from kvtracker_sdk.tracking.events import (
     Callback,
     EventBus,
@@ -40,6 +43,7 @@ from kvtracker_sdk.tracking.events import (
 from kvtracker_sdk.tracking.frame_input import FramePreparer, PreparedFrame
 from kvtracker_sdk.tracking.map_builder import RebuildOutcome
 from kvtracker_sdk.tracking.map_keeper import MapKeeper
+from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
 from kvtracker_sdk.tracking.quality import ConfidenceMonitor, frame_confidence
 from kvtracker_sdk.tracking.states import transition
 from kvtracker_sdk.types import FrameResult, MapStatus, Pose, StateReason, TrackingState
@@ -92,6 +96,15 @@ class Tracker:
         tracker._owns_backend = True
         return tracker
 
+    @classmethod
+    def from_map(cls, path: PathLike, backend: Backend, config: ConfigOverride = None) -> Tracker:
+        """A tracker relocalising against the map saved at ``path`` by ``backend``'s model.
+        ``config``: None keeps the map's saved one; a dict changes some of its fields."""
+        loaded = persistence.load_tracker_map(path, backend.info, config)
+        tracker = cls(loaded.config, backend)
+        tracker._install_loaded_map(loaded.keyframe_map)
+        return tracker
+
     # ------------------------------------------------------------------ read-only views
     @property
     def config(self) -> TrackerConfig:
@@ -140,9 +153,15 @@ class Tracker:
         return self._events.unregister(handle)
 
     # ------------------------------------------------------------------ session control
-    def initialize(self) -> None:
-        """Start a fresh session: no map, state INIT (nothing to do on a new tracker)."""
-        self.reset()
+    def initialize(self, map: PathLike | None = None) -> None:
+        """Start a fresh session: without ``map``, no map and state INIT; with ``map``, relocalise
+        against the map saved at that path under this tracker's configuration (its mode and
+        resolution must be the map's). A load that fails raises and changes nothing."""
+        if map is None:
+            self.reset()
+            return
+        loaded = persistence.load_tracker_map(map, self._backend.info, self._config)
+        self._install_loaded_map(loaded.keyframe_map)
 
     def reset(self) -> None:
         """Drop the map (a pending rebuild is discarded) and return to INIT with reason RESET."""
@@ -163,6 +182,8 @@ class Tracker:
             self._drop_map()
             self._input_size = None
             self._keeper.load(kf_map)
+            # the backend may have been swapped for another runtime since the map was read
+            self._keeper.convert_cache(self._backend.info.dtype, self._backend.info.device)
             self._monitor.set_reference(kf_map.keyframes[0].mean_confidence)
             self._change(_S.RELOCALIZING, _R.MAP_LOADED, None)
             self._events.post(EventKind.MAP_UPDATED, MapUpdatedEvent.of(kf_map, "loaded"))
@@ -186,6 +207,20 @@ class Tracker:
             self._keeper.convert_cache(new.dtype, new.device)
             previous, self._backend, self._owns_backend = self._backend, backend, False
         return previous
+
+    def save_map(self, path: PathLike) -> MapInfo:
+        """Save the map (after a pending rebuild) atomically: ``path`` keeps its old content or
+        holds the whole new map. StateError without a map; MapIOError if it cannot write."""
+        kf_map = self._settled_map()
+        return persistence.save_tracker_map(path, kf_map, self._backend.info, self._config)
+
+    def export_point_cloud(self, path: PathLike, **options: Any) -> int:
+        """The map's point cloud as PLY; ``options`` and return: ``persistence``'s."""
+        return persistence.export_point_cloud(self._settled_map(), path, **options)
+
+    def export_trajectory(self, path: PathLike) -> int:
+        """The keyframes' world poses as a TUM trajectory; returns the number of poses."""
+        return persistence.export_trajectory(self._settled_map(), path)
 
     def wait_for_map(self, timeout: float | None = None) -> bool:
         """Wait for a pending rebuild and install it; True when none is pending any more."""
@@ -340,6 +375,12 @@ class Tracker:
         self._events.post(
             EventKind.STATE_CHANGE, StateChangeEvent(move.previous, move.state, move.reason, index)
         )
+
+    def _settled_map(self) -> KeyframeMap | None:
+        """The map once a pending rebuild is installed (not for callers holding the lock)."""
+        with self._call():
+            self._collect(max(self._frames - 1, 0), {}, timeout=None)
+            return self._keeper.map
 
     def _drop_map(self) -> None:
         self._keeper.drop()

@@ -1,0 +1,156 @@
+"""The tracker's side of map files: what is saved with a map, and what a loaded map runs under.
+
+The file itself — atomic writes, header validation, checksums, never a pickle — is
+``io/map_file``'s. This module adds what only the tracker knows:
+
+* Saving stores, beside the map, the backend that made its cache (its fingerprint decides which
+  backends may load the file), the tracker configuration (JSON) and the tracking mode.
+* Loading for a backend refuses a map from another model (family, config hash, weights, cache
+  layout, tokenisation) with ``MapModelMismatchError`` naming both models, before any tensor is
+  read, and hands back the cache in that backend's dtype and on its device (an fp32 map of the
+  same weights loads into a bf16 backend).
+* The configuration of a loaded map: by default the one saved with it; a ``TrackerConfig``
+  replaces it; a dict changes some of its fields (``TrackerConfig.updated``). Either way the mode
+  and the resolution side must be the map's: its keyframe images and K/V exist at one model input
+  size (otherwise ``MapModelMismatchError``), and object maps hold masked keyframes (otherwise
+  ``ConfigError``).
+
+Nothing here touches a tracker: ``load_tracker_map`` returns plain data that the ``Tracker``
+installs in one step, so a load that fails at any point leaves the tracker as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.cache.keyframe_map import KeyframeMap
+from kvtracker_sdk.config import TrackerConfig
+from kvtracker_sdk.errors import ConfigError, MapFormatError, MapModelMismatchError, StateError
+from kvtracker_sdk.io import map_export
+from kvtracker_sdk.io.map_file import MapInfo, load_map, save_map
+
+__all__ = [
+    "ConfigOverride",
+    "LoadedTrackerMap",
+    "export_point_cloud",
+    "export_trajectory",
+    "load_tracker_map",
+    "resolve_config",
+    "save_tracker_map",
+]
+
+PathLike = str | os.PathLike[str]
+ConfigOverride = TrackerConfig | Mapping[str, Any] | None
+
+
+@dataclass(frozen=True, eq=False)
+class LoadedTrackerMap:
+    """A saved map ready to install: the map (cache in the loading backend's dtype and device,
+    keyframe poses in the saved world frame, the saved gauge), its configuration and its header."""
+
+    keyframe_map: KeyframeMap
+    config: TrackerConfig
+    info: MapInfo
+
+
+def _require_map(keyframe_map: KeyframeMap | None, action: str) -> KeyframeMap:
+    if keyframe_map is None:
+        raise StateError(
+            f"cannot {action}: the tracker has no map yet (push frames until it has mapped, "
+            "or load one)"
+        )
+    return keyframe_map
+
+
+def save_tracker_map(
+    path: PathLike,
+    keyframe_map: KeyframeMap | None,
+    backend_info: BackendInfo,
+    config: TrackerConfig,
+) -> MapInfo:
+    """Write ``keyframe_map`` (made by ``backend_info``'s backend under ``config``) to ``path``.
+
+    Atomic: if anything fails, ``path`` keeps its previous content. Raises StateError when there
+    is no map, MapIOError when the file cannot be written.
+    """
+    kf_map = _require_map(keyframe_map, "save the map")
+    return save_map(
+        path,
+        kf_map,
+        backend_info=backend_info,
+        tracker_config_json=json.dumps(config.to_dict(), sort_keys=True),
+        mode=config.mode.value,
+    )
+
+
+def _saved_config(info: MapInfo, source: str) -> TrackerConfig:
+    try:
+        return TrackerConfig.from_dict(json.loads(info.tracker_config_json))
+    except ConfigError as exc:  # e.g. a map from a newer SDK with more settings
+        raise MapFormatError(
+            f"{source}: the tracker config saved in the map is not valid for this SDK ({exc}); "
+            "pass config=TrackerConfig(...) to choose one"
+        ) from exc
+
+
+def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> TrackerConfig:
+    """The configuration a map saved with ``info`` runs under (see the module docstring).
+
+    Raises ConfigError for an invalid override or another mode, MapModelMismatchError for
+    another resolution side, MapFormatError if the saved config is needed but unreadable.
+    """
+    if isinstance(override, TrackerConfig):
+        config = override
+    elif override is not None and not isinstance(override, Mapping):
+        raise ConfigError(f"config must be a TrackerConfig, a dict or None, not {override!r}")
+    else:
+        config = _saved_config(info, source)
+        if override:
+            config = config.updated(**override)
+    if config.mode.value != info.mode:
+        raise ConfigError(
+            f"{source} was saved in {info.mode} mode; the tracker is configured for "
+            f"{config.mode.value} mode"
+        )
+    saved_side = json.loads(info.tracker_config_json).get("resolution")
+    if isinstance(saved_side, int) and saved_side != config.resolution:
+        height, width = info.resolution
+        raise MapModelMismatchError(
+            f"{source} was built at resolution {saved_side} (model input {height}x{width}); "
+            f"the tracker is configured for resolution {config.resolution}"
+        )
+    return config
+
+
+def load_tracker_map(
+    path: PathLike, backend_info: BackendInfo, config: ConfigOverride = None
+) -> LoadedTrackerMap:
+    """Load and verify the map at ``path`` for the backend described by ``backend_info``.
+
+    Raises the map errors of ``io/map_file`` (format, version, model mismatch — checked before
+    the tensor data is read —, corruption, I/O) and those of :func:`resolve_config`.
+    """
+    source = str(path)
+    loaded = load_map(path, expected_backend=backend_info)
+    resolved = resolve_config(loaded.info, config, source)
+    return LoadedTrackerMap(loaded.keyframe_map, resolved, loaded.info)
+
+
+def export_point_cloud(keyframe_map: KeyframeMap | None, path: PathLike, **options: Any) -> int:
+    """The map's fused, confidence-filtered point cloud as binary PLY (world frame); returns the
+    point count. ``options``: ``min_confidence``, ``use_masks``, ``voxel_size`` (see
+    ``io.map_export.fused_point_cloud``). StateError without a map."""
+    kf_map = _require_map(keyframe_map, "export a point cloud")
+    return map_export.export_point_cloud(kf_map, path, **options)
+
+
+def export_trajectory(keyframe_map: KeyframeMap | None, path: PathLike) -> int:
+    """The keyframes' ``T_world_cam`` as a TUM trajectory sorted by time; returns the pose count.
+    StateError without a map."""
+    kf_map = _require_map(keyframe_map, "export the keyframe trajectory")
+    return map_export.export_keyframe_trajectory(kf_map, path)
