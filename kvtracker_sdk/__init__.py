@@ -10,6 +10,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from kvtracker_sdk._version import __version__
+from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import (
     BackendError,
     BackendMismatchError,
@@ -39,16 +40,17 @@ from kvtracker_sdk.errors import (
     TrajectoryError,
     WeightsNotFoundError,
 )
-from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.types import FrameResult, HeadSet, MapStatus, Pose, StateReason, TrackingState
 
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
-    from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
     from kvtracker_sdk.backends.simulated import SimulatedBackend
     from kvtracker_sdk.backends.torch_backend import TorchBackend
+    from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
     from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+    from kvtracker_sdk.io.map_file import LoadedMap, load_map, read_map_info
+    from kvtracker_sdk.io.map_format import MapInfo
     from kvtracker_sdk.tracking.tracker import Tracker
 
 # public name -> module that defines it (loaded lazily)
@@ -61,6 +63,10 @@ _LAZY: dict[str, str] = {
     "KVCache": "kvtracker_sdk.cache.kv_cache",
     "Keyframe": "kvtracker_sdk.cache.keyframe_map",
     "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
+    "LoadedMap": "kvtracker_sdk.io.map_file",
+    "MapInfo": "kvtracker_sdk.io.map_format",
+    "load_map": "kvtracker_sdk.io.map_file",
+    "read_map_info": "kvtracker_sdk.io.map_file",
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Tracker": "kvtracker_sdk.tracking.tracker",
@@ -87,10 +93,12 @@ __all__ = [
     "KVTrackerError",
     "Keyframe",
     "KeyframeMap",
+    "LoadedMap",
     "MapCorruptedError",
     "MapError",
     "MapFormatError",
     "MapIOError",
+    "MapInfo",
     "MapModelMismatchError",
     "MapResult",
     "MapStatus",
@@ -114,6 +122,8 @@ __all__ = [
     "TrajectoryError",
     "WeightsNotFoundError",
     "__version__",
+    "load_map",
+    "read_map_info",
 ]
 
 
