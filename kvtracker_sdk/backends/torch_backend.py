@@ -1,12 +1,20 @@
-"""``TorchBackend``: the ``Backend`` contract served by the PyTorch Pi3 model (CPU or GPU, fp32 or bf16).
+"""``TorchBackend``: the ``Backend`` contract served by a PyTorch model of either family.
 
-    backend = TorchBackend.from_pretrained("yyfz233/Pi3", dtype=torch.bfloat16)   # or a local file
+    backend = TorchBackend.from_pretrained("da3-small", dtype=torch.bfloat16)   # or "pi3", a file
     mapped = backend.map(keyframes)            # uint8 [N, H, W, 3] at model resolution
     result = backend.track(frame, mapped.cache, heads=HeadSet.CAMERA)
 
+Families: ``pi3`` (π³) and ``da3`` (Depth Anything 3; ``da3-small``, ``da3-base``, ...).
+``from_pretrained`` takes a model name (``models.registry.MODEL_NAMES``), a ``.safetensors``
+file, a folder or a hub repo id, and picks the family from the checkpoint's tensor names;
+``info.family`` / ``info.model`` report it, and caches never cross families (the fingerprint
+hashes the family). Each family's outputs are converted to the SDK's conventions by its adapter
+(``backends/torch_families.py``): ``T_world_cam`` camera-to-world float64, confidence in [0, 1]
+(DA3: ``1 - 1/depth_conf``), local points in the camera frame (DA3: unprojected depth).
+
 Images arrive at the model resolution (``backends/preprocess.py``): uint8 RGB, H and W multiples
 of 14. ``map`` runs the full model on the keyframes and returns their poses, confidence and local
-points in the pass's own raw frame, plus the ``KVCache`` (K/V of the 18 global layers, in the
+points in the pass's own raw frame, plus the ``KVCache`` (K/V of the global layers, in the
 backend's dtype). ``track`` runs one frame (``track_batch``: several independent frames in one
 pass) against a cache while holding ``cache.lock``; the cache's content is only read.
 
@@ -24,7 +32,8 @@ import numpy as np
 import torch
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
-from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+from kvtracker_sdk.backends.torch_families import FrameOutputs, TorchFamily, family_adapter
+from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import (
     BackendMismatchError,
     ConfigError,
@@ -34,8 +43,10 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
     StateError,
 )
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config, Pi3Output, load_pi3
-from kvtracker_sdk.models.pi3.checkpoint import weights_fingerprint as hash_weights
+from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
+from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
+from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
+from kvtracker_sdk.models.registry import load_model
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["TorchBackend"]
@@ -67,34 +78,37 @@ def _accelerations(device: torch.device) -> tuple[str, ...]:
 
 
 class TorchBackend:
-    """Pi3 on PyTorch; implements ``kvtracker_sdk.backends.base.Backend``."""
+    """Pi3 or Depth Anything 3 on PyTorch; implements ``kvtracker_sdk.backends.base.Backend``.
+
+    ``model_name`` defaults to ``"<family>-custom"``; ``from_pretrained`` names the official
+    architectures (``"pi3"``, ``"da3-small"``, ...).
+    """
 
     def __init__(
         self,
-        model: Pi3,
+        model: Pi3 | DepthAnything3,
         *,
         dtype: torch.dtype | str = torch.float32,
         device: torch.device | str = "cpu",
-        model_name: str = "pi3-custom",
+        model_name: str | None = None,
         weights_fingerprint: str | None = None,
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
+        family = family_adapter(model)  # ModelError for other networks, before any cast
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
-        self._model: Pi3 | None = model.set_precision(compute_dtype).to(device).eval()
+        self._model: Pi3 | DepthAnything3 | None = model.set_precision(compute_dtype).to(device).eval()
+        self._family: TorchFamily | None = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
-        self._device = model.register_token.device
-        decoder = model.decoder
-        self._layout = CacheLayout(
-            decoder.global_block_indices, decoder.num_heads, decoder.head_dim
-        )
+        self._device = next(model.parameters()).device
+        self._layout = family.layout
         self._info = BackendInfo(
             backend="torch",
-            model=model_name,
-            family="pi3",
+            model=model_name or f"{family.family}-custom",
+            family=family.family,
             config_hash=model.config.config_hash,
             weights_fingerprint=fingerprint,
             patch_size=model.config.patch_size,
-            extra_tokens_per_frame=model.num_register_tokens,
+            extra_tokens_per_frame=family.extra_tokens_per_frame,
             layout=self._layout,
             dtype=str(compute_dtype).removeprefix("torch."),
             device=str(self._device),
@@ -106,19 +120,20 @@ class TorchBackend:
         cls,
         weights: str | os.PathLike[str],
         *,
-        config: Pi3Config | None = None,
+        config: Pi3Config | DA3Config | None = None,
         dtype: torch.dtype | str = torch.float32,
         device: torch.device | str = "cpu",
         model_name: str | None = None,
     ) -> TorchBackend:
-        """Load a checkpoint (``.safetensors`` file, folder, or hub repo id like ``yyfz233/Pi3``)."""
-        loaded = load_pi3(weights, config=config)
-        name = model_name or ("pi3" if loaded.model.config == Pi3Config.large() else "pi3-custom")
+        """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
+        ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
+        checkpoint's tensor names."""
+        loaded = load_model(weights, config=config)
         return cls(
-            loaded.model,
+            loaded.model,  # type: ignore[arg-type]
             dtype=dtype,
             device=device,
-            model_name=name,
+            model_name=model_name or loaded.name,
             weights_fingerprint=loaded.fingerprint,
         )
 
@@ -129,7 +144,7 @@ class TorchBackend:
 
     def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
-        model = self._live_model()
+        family = self._live_family()
         frames = self._to_tensor(images)
         if masks is not None and (masks.dtype != np.bool_ or masks.shape != images.shape[:3]):
             raise MaskError(
@@ -137,7 +152,7 @@ class TorchBackend:
             )
         start = time.perf_counter()
         with torch.no_grad():
-            mapped = model.forward_map(frames.unsqueeze(0), heads=HeadSet.ALL)
+            mapped = family.map(frames)
         cache = KVCache.from_layers(
             mapped.keys,
             mapped.values,
@@ -145,12 +160,12 @@ class TorchBackend:
             tokens_per_frame=mapped.tokens_per_frame,
             keyframe_ids=range(frames.shape[0]),
         )
-        output = mapped.output
-        assert output.conf is not None and output.local_points is not None  # HeadSet.ALL
+        outputs = mapped.frames
+        assert outputs.confidence is not None and outputs.local_points is not None  # map: all heads
         return MapResult(
-            poses=output.camera_poses[0].to(torch.float64).cpu().numpy(),
-            confidence=torch.sigmoid(output.conf[0, ..., 0]).cpu().numpy(),
-            local_points=output.local_points[0].cpu().numpy(),
+            poses=outputs.poses,
+            confidence=outputs.confidence,
+            local_points=outputs.local_points,
             cache=cache,
             timings_ms={"map": (time.perf_counter() - start) * 1e3},
         )
@@ -169,12 +184,12 @@ class TorchBackend:
         self, images: np.ndarray, cache: KVCache, *, heads: HeadSet = HeadSet.CONFIDENCE
     ) -> list[TrackResult]:
         """Track independent frames uint8 [B, H, W, 3] against ``cache`` in one pass."""
-        model = self._live_model()
+        family = self._live_family()
         frames = self._to_tensor(images)
         self._check_cache(cache, frames.shape[-2], frames.shape[-1])
         start = time.perf_counter()
         with cache.lock, torch.no_grad():
-            output = model.forward_track(frames, cache, heads=heads)
+            output = family.track(frames, cache, heads)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         timings = {"track": elapsed_ms / frames.shape[0], "track_batch": elapsed_ms}
         return [self._track_result(output, index, timings) for index in range(frames.shape[0])]
@@ -182,12 +197,18 @@ class TorchBackend:
     def close(self) -> None:
         """Drop the model (frees its memory); later calls raise ``StateError``. Idempotent."""
         self._model = None
+        self._family = None
 
     # ------------------------------------------------------------------ helpers
-    def _live_model(self) -> Pi3:
+    def _live_model(self) -> Pi3 | DepthAnything3:
         if self._model is None:
             raise StateError("this TorchBackend is closed")
         return self._model
+
+    def _live_family(self) -> TorchFamily:
+        if self._family is None:
+            raise StateError("this TorchBackend is closed")
+        return self._family
 
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""
@@ -216,7 +237,7 @@ class TorchBackend:
             raise BackendMismatchError(
                 f"cache layout {cache.layout} does not match this model's {self._layout}"
             )
-        if cache.dtype != self._live_model().compute_dtype or cache.device != self._device:
+        if cache.dtype != self._live_family().compute_dtype or cache.device != self._device:
             raise BackendMismatchError(
                 f"cache is {cache.dtype} on {cache.device}, the backend computes in {self._info.dtype} on "
                 f"{self._device}: convert it with cache.to(dtype=..., device=...)"
@@ -229,16 +250,11 @@ class TorchBackend:
             )
 
     @staticmethod
-    def _track_result(output: Pi3Output, index: int, timings: dict[str, float]) -> TrackResult:
-        pose = output.camera_poses[index, 0].to(torch.float64).cpu().numpy()
-        confidence_map = None
-        if output.conf is not None:
-            confidence_map = torch.sigmoid(output.conf[index, 0, ..., 0]).cpu().numpy()
-        local_points = (
-            None if output.local_points is None else output.local_points[index, 0].cpu().numpy()
-        )
+    def _track_result(output: FrameOutputs, index: int, timings: dict[str, float]) -> TrackResult:
+        confidence_map = None if output.confidence is None else output.confidence[index]
+        local_points = None if output.local_points is None else output.local_points[index]
         return TrackResult(
-            pose=pose,
+            pose=output.poses[index],
             confidence=None if confidence_map is None else float(confidence_map.mean()),
             confidence_map=confidence_map,
             local_points=local_points,

@@ -19,8 +19,9 @@ rebuilt on a worker thread) are fully independent.
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -54,11 +55,11 @@ class CacheLayout:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, object]) -> CacheLayout:
+    def from_dict(cls, data: Mapping[str, Any]) -> CacheLayout:
         return cls(
-            block_indices=tuple(int(i) for i in data["block_indices"]),  # type: ignore[attr-defined]
-            num_heads=int(data["num_heads"]),  # type: ignore[arg-type]
-            head_dim=int(data["head_dim"]),  # type: ignore[arg-type]
+            block_indices=tuple(int(i) for i in data["block_indices"]),
+            num_heads=int(data["num_heads"]),
+            head_dim=int(data["head_dim"]),
         )
 
 
