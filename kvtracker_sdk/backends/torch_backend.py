@@ -229,7 +229,9 @@ class TorchBackend:
                 f"image size {height}x{width} is not a positive multiple of {patch}: resize it with "
                 "kvtracker_sdk.backends.preprocess.model_resolution / resize_image first"
             )
-        tensor = torch.from_numpy(np.ascontiguousarray(images)).to(self._device)
+        # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
+        writable = images if images.flags.writeable else images.copy()
+        tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
         return tensor.permute(0, 3, 1, 2).float().div_(255.0)
 
     def _check_cache(self, cache: KVCache, height: int, width: int) -> None:

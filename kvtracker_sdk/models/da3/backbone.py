@@ -1,0 +1,283 @@
+"""DA3's backbone: a DINOv2 ViT whose blocks alternate per-view and cross-view attention.
+
+Tokens of one view (no registers): ``[cls | h*w patches]``, T = 1 + h*w, as in DINOv2 (pos-embed
+grid resized with ``scale_factor=((h+0.1)/37, (w+0.1)/37)``, bicubic, no antialias). Then, for
+block ``i`` over views [B, N, T, C]:
+
+- ``i < alt_start``: plain DINOv2 block on each view (no qk-norm, no RoPE);
+- ``i == alt_start``: token 0 of every view is overwritten by a camera token — the reference
+  view's ``camera_token[:, 0]``, every other view's ``camera_token[:, 1]`` (or per-view tokens of
+  the pose encoder);
+- ``i >= alt_start``, even: per-view block with qk-norm and RoPE2D at (0, 0) for token 0 and
+  (r+1, c+1) for the patch in row r, column c;
+- ``i >= alt_start``, odd: **global** block over the sequence [B, N*T] (views in order) with RoPE
+  at (0, 0) for token 0 and (1, 1) for every patch. These are the only places where views
+  interact, and the layers a KV cache stores.
+
+For each out layer l the heads read ``cat(last local output, output of l)`` [B, N, T, 2C]:
+features are ``cat(local half, norm(global half))`` without token 0, and the camera decoder reads
+token 0 of the last out layer, not normalised.
+
+Three passes differ only in the camera tokens and the global blocks (see ``DA3Backbone``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import cast
+
+import torch
+from torch import nn
+
+from kvtracker_sdk.errors import CacheError, ImageShapeError
+from kvtracker_sdk.models.da3.config import DA3Config
+from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy, select_reference_view
+from kvtracker_sdk.models.layers.attention import CacheBuffers, keyframe_query_mask
+from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
+from kvtracker_sdk.models.layers.vit_encoder import DinoViT
+
+__all__ = ["BackboneOutput", "DA3Backbone", "DA3ViT", "global_positions"]
+
+# (ordinal among global blocks, block, tokens [B, N*T, C]) -> tokens [B, N*T, C]
+GlobalStep = Callable[[int, Block, torch.Tensor], torch.Tensor]
+# input of block alt_start - 1 [B, N, T, C] -> (camera tokens [B, N, C], reference view [B] or None)
+CameraChoice = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]
+
+
+def global_positions(
+    tokens_per_frame: int, *, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """RoPE positions of one view in global blocks: [T, 2] int64, (0, 0) then (1, 1) for every patch."""
+    positions = torch.ones(tokens_per_frame, 2, dtype=torch.long, device=device)
+    positions[0] = 0
+    return positions
+
+
+@dataclass(frozen=True)
+class BackboneOutput:
+    """What the heads read, per view."""
+
+    features: list[torch.Tensor]  # per out layer [B, N, h*w, 2C]: cat(local, norm(global)), patches
+    camera_tokens: torch.Tensor  # [B, N, 2C]: token 0 of cat(local, global) at the last out layer
+    reference_view: torch.Tensor | None  # [B] int64: the view given camera_token[:, 0]
+
+
+class DA3ViT(DinoViT):
+    """``backbone.pretrained``: DINOv2 ViT/14 plus ``camera_token`` [1, 2, C] (reference, other)."""
+
+    def __init__(self, config: DA3Config) -> None:
+        vit = config.backbone
+        super().__init__(
+            embed_dim=vit.embed_dim,
+            depth=vit.depth,
+            num_heads=vit.num_heads,
+            patch_size=config.patch_size,
+            mlp_ratio=vit.mlp_ratio,
+            pos_embed_grid=vit.pos_embed_grid,
+            interpolate_antialias=False,
+            interpolate_offset=0.1,
+            layerscale_init=1.0,
+            qk_norm_start=vit.alt_start,
+            final_norm_eps=1e-5,
+            ffn=vit.ffn,
+        )
+        self.camera_token = nn.Parameter(torch.randn(1, 2, vit.embed_dim) * 0.02)
+
+
+class DA3Backbone(nn.Module):
+    """``backbone``: holds ``pretrained`` (the checkpoint's nesting) and runs the three passes.
+
+    - ``forward``: all views together; reference view chosen by ``strategy`` (or camera tokens
+      given by the pose encoder); optional ``global_attn_mask`` bool [N*T, N*T] (True = attend).
+    - ``forward_map``: reference pinned to view 0; also returns every global block's K (after
+      k_norm and RoPE) and V, [B, heads, N*T, head_dim] each, camera tokens included.
+    - ``forward_track``: F independent query views, each with ``camera_token[:, 1]``, attending in
+      every global block to a cache's tokens plus their own.
+    """
+
+    def __init__(self, config: DA3Config) -> None:
+        super().__init__()
+        self.config = config
+        self.pretrained = DA3ViT(config)
+        vit = config.backbone
+        self.alt_start = vit.alt_start
+        self.out_layers = vit.out_layers
+        self.num_heads = vit.num_heads
+        self.head_dim = vit.head_dim
+        self.global_block_indices = vit.global_block_indices
+
+    # ------------------------------------------------------------------ passes
+    def forward(
+        self,
+        images: torch.Tensor,
+        *,
+        strategy: ReferenceStrategy = "saddle_balanced",
+        camera_tokens: torch.Tensor | None = None,
+        global_attn_mask: torch.Tensor | None = None,
+    ) -> BackboneOutput:
+        """Normalised images [B, N, 3, H, W] -> ``BackboneOutput`` (``camera_tokens`` [B, N, C]
+        from the pose encoder replace the learned ones and skip reference selection)."""
+        tokens, grid = self._tokens(images)
+        views = tokens.shape[1]
+
+        def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+            if camera_tokens is not None:
+                return camera_tokens.to(x.dtype), None
+            reference = select_reference_view(x[:, :, 0], strategy)
+            return self._learned_camera_tokens(reference, views), reference
+
+        rope = self._global_rope(tokens).repeat(views)
+        return self._run(
+            tokens,
+            grid,
+            choose,
+            lambda _, block, x: block(x, rope=rope, attn_mask=global_attn_mask),
+        )
+
+    def forward_map(
+        self, images: torch.Tensor
+    ) -> tuple[BackboneOutput, list[torch.Tensor], list[torch.Tensor]]:
+        """Keyframes [B, N, 3, H, W] with view 0 as reference -> (output, keys, values)."""
+        tokens, grid = self._tokens(images)
+        batch, views = tokens.shape[:2]
+        rope = self._global_rope(tokens).repeat(views)
+        keys: list[torch.Tensor] = []
+        values: list[torch.Tensor] = []
+
+        def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+            reference = torch.zeros(batch, dtype=torch.long, device=x.device)  # keyframe 0
+            return self._learned_camera_tokens(reference, views), reference
+
+        def step(_: int, block: Block, x: torch.Tensor) -> torch.Tensor:
+            out, k, v = block.forward_map(x, rope=rope)
+            keys.append(k)
+            values.append(v)
+            return out
+
+        return self._run(tokens, grid, choose, step), keys, values
+
+    def forward_track(self, images: torch.Tensor, cache: CacheBuffers) -> BackboneOutput:
+        """Query views [F, 3, H, W] against ``cache`` -> output with leading dims [1, F].
+
+        Each view's global attention sees the cached tokens and its own T tokens (one SDPA call
+        with a block mask when F > 1). The views' K/V go to the cache's scratch region; the
+        cached part is only read.
+        """
+        if images.dim() != 4:
+            raise ImageShapeError(
+                f"tracking expects views [F, 3, H, W], got shape {tuple(images.shape)}"
+            )
+        tokens, grid = self._tokens(images.unsqueeze(0))  # one sequence of F views
+        views, length = tokens.shape[1], tokens.shape[2]
+        past = cache.length
+        cache.ensure_capacity(past + views * length)
+        self.check_cache(cache, dtype=tokens.dtype, device=tokens.device)
+        mask = None
+        if views > 1:
+            mask = keyframe_query_mask(past, views, length, device=tokens.device)[past:]
+        rope = self._global_rope(tokens).repeat(views)
+
+        def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+            return self.pretrained.camera_token[:, 1:].expand(1, views, -1), None
+
+        def step(ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
+            key_buffer, value_buffer = cache.buffers(ordinal)
+            return block.forward_track(x, key_buffer, value_buffer, past, rope=rope, attn_mask=mask)
+
+        return self._run(tokens, grid, choose, step)
+
+    # ------------------------------------------------------------------ internals
+    def _tokens(self, images: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+        """[B, N, 3, H, W] -> tokens [B, N, T, C] (cls + patches, position-embedded), (h, w)."""
+        if images.dim() != 5 or images.shape[2] != 3:
+            raise ImageShapeError(
+                f"expected images [B, N, 3, H, W], got shape {tuple(images.shape)}"
+            )
+        batch, views = images.shape[:2]
+        patch = self.config.patch_size
+        tokens = self.pretrained.prepare_tokens(images.flatten(0, 1))  # [B*N, T, C]
+        return tokens.unflatten(0, (batch, views)), (
+            images.shape[-2] // patch,
+            images.shape[-1] // patch,
+        )
+
+    def _learned_camera_tokens(self, reference: torch.Tensor, views: int) -> torch.Tensor:
+        """[B, N, C]: ``camera_token[:, 0]`` for each sequence's reference view, else ``[:, 1]``."""
+        is_reference = torch.arange(views, device=reference.device) == reference.unsqueeze(1)
+        learned = self.pretrained.camera_token[0]  # [2, C]: reference, other
+        return torch.where(is_reference.unsqueeze(-1), learned[0], learned[1])
+
+    def _rope(self, positions: torch.Tensor, dtype: torch.dtype) -> RopeTable:
+        return rope_table(
+            positions, self.head_dim, base=self.config.backbone.rope_base, dtype=dtype
+        )
+
+    def _global_rope(self, tokens: torch.Tensor) -> RopeTable:
+        """One view's global-block table [T, head_dim] (repeat it per view for [N*T])."""
+        return self._rope(global_positions(tokens.shape[2], device=tokens.device), tokens.dtype)
+
+    def _run(
+        self,
+        tokens: torch.Tensor,
+        grid: tuple[int, int],
+        choose: CameraChoice,
+        global_step: GlobalStep,
+    ) -> BackboneOutput:
+        batch, views, length, dim = tokens.shape
+        local_positions = grid_positions(*grid, num_prefix_tokens=1, device=tokens.device)
+        local_rope = self._rope(local_positions, tokens.dtype)
+        x = local_x = tokens
+        reference: torch.Tensor | None = None
+        taken: list[torch.Tensor] = []
+        for index, module in enumerate(self.pretrained.blocks):
+            block = cast(Block, module)
+            if index == self.alt_start - 1:  # DA3 picks the reference from this block's input
+                camera, reference = choose(x)
+            if index == self.alt_start:
+                x = torch.cat((camera.unsqueeze(2), x[:, :, 1:]), dim=2)
+            if index >= self.alt_start and index % 2 == 1:  # global: [B, N*T, C]
+                ordinal = (index - self.alt_start) // 2
+                x = global_step(ordinal, block, x.reshape(batch, views * length, dim))
+                x = x.reshape(batch, views, length, dim)
+            else:  # per view: [B*N, T, C]
+                rope = local_rope if index >= self.alt_start else None
+                x = local_x = block(x.reshape(batch * views, length, dim), rope=rope).reshape(
+                    x.shape
+                )
+            if index in self.out_layers:
+                taken.append(torch.cat((local_x, x), dim=-1))
+        norm = self.pretrained.norm
+        features = [
+            torch.cat((out[..., :dim], norm(out[..., dim:])), dim=-1)[:, :, 1:] for out in taken
+        ]
+        return BackboneOutput(
+            features=features, camera_tokens=taken[-1][:, :, 0], reference_view=reference
+        )
+
+    def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
+        """Raise ``CacheError`` unless every global layer has buffers of the right shape and dtype."""
+        expected = (1, self.num_heads, self.head_dim)
+        for ordinal, block_index in enumerate(self.global_block_indices):
+            try:
+                key_buffer, value_buffer = cache.buffers(ordinal)
+            except IndexError as exc:
+                raise CacheError(
+                    f"the cache has no layer {ordinal} (backbone block {block_index}); the model has "
+                    f"{len(self.global_block_indices)} global layers"
+                ) from exc
+            for buffer in (key_buffer, value_buffer):
+                if (
+                    buffer.dim() != 4
+                    or (buffer.shape[0], buffer.shape[1], buffer.shape[3]) != expected
+                ):
+                    raise CacheError(
+                        f"cache layer {ordinal}: buffer {tuple(buffer.shape)} does not fit "
+                        f"[1, {self.num_heads}, tokens, {self.head_dim}]"
+                    )
+                if buffer.dtype != dtype or buffer.device != device:
+                    raise CacheError(
+                        f"cache layer {ordinal} is {buffer.dtype} on {buffer.device}, the model computes "
+                        f"in {dtype} on {device}; convert it with cache.to(dtype=..., device=...)"
+                    )
