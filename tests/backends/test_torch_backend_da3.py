@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -19,15 +18,6 @@ from tests.helpers import shared_path
 from tests.models.da3.factories import random_da3
 
 H, W = 28, 42  # a 2x3 patch grid: 1 camera token + 6 patches = 7 tokens per frame
-
-
-@pytest.fixture(autouse=True)
-def single_thread() -> Iterator[None]:
-    """The models here are tiny: one intra-op thread is several times faster on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

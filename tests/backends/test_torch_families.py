@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import numpy as np
 import pytest
 import torch
@@ -16,15 +14,6 @@ from kvtracker_sdk.models.da3 import load_da3
 from kvtracker_sdk.models.pi3 import load_pi3
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import shared_path
-
-
-@pytest.fixture(autouse=True)
-def single_thread() -> Iterator[None]:
-    """The golden models are tiny: one intra-op thread is several times faster on a shared CPU."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _cache(family: DA3Family | Pi3Family, frames: torch.Tensor) -> tuple[KVCache, object]:

@@ -6,7 +6,6 @@ from the checkpoint, keyframe 0 defines the world frame, and a saved map refuses
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -19,17 +18,6 @@ from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path
 
 torch_backend = pytest.importorskip("kvtracker_sdk.backends.torch_backend")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    """The golden model is tiny: one intra-op thread avoids spin-waiting on a busy machine."""
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

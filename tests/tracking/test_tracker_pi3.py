@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -14,18 +13,6 @@ from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path
 
 torch_backend = pytest.importorskip("kvtracker_sdk.backends.torch_backend")
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_torch_thread() -> Iterator[None]:
-    """The golden model is tiny: one intra-op thread is as fast, and on a busy (CI) machine it
-    avoids torch's thread pool spin-waiting on cores other jobs hold (10x slower here)."""
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

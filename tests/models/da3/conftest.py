@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -10,16 +10,6 @@ from safetensors.torch import load_file
 
 from kvtracker_sdk.models.da3 import DepthAnything3, load_da3
 from tests.helpers import shared_path
-
-
-@pytest.fixture(autouse=True)
-def single_thread() -> Iterator[None]:
-    """Run each test single-threaded: the models here are tiny, and on a shared 2-core machine
-    intra-op threads cost more in synchronisation than they win (measured 5-30x slower)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="session")
