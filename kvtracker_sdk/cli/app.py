@@ -1,0 +1,77 @@
+"""The ``kvtracker`` command: a typer app assembled from one module per command group.
+
+    kvtracker track INPUT --weights pi3.safetensors --out run/     track a video or a sequence
+    kvtracker demo --out demo/                                      offline, simulated backend
+    kvtracker eval run/trajectory.txt groundtruth.txt               ATE / RPE / cm-degree
+    kvtracker map info office.kvmap                                 what a map file holds
+
+Each command module exposes ``register(app)``; a group added later (``export_onnx``, with the
+ONNX issue) is registered as soon as its module exists. Command modules import the tracker,
+torch and OpenCV inside their functions, so ``kvtracker --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from typing import Annotated
+
+import typer
+
+from kvtracker_sdk._version import __version__
+from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG
+from kvtracker_sdk.cli.logging_setup import CliState, configure_logging
+
+__all__ = ["app", "main"]
+
+_COMMAND_MODULES = ("track", "demo", "evaluate", "map_cmd")
+_OPTIONAL_COMMAND_MODULES = ("export_onnx",)  # present once the ONNX export issue lands
+
+app = typer.Typer(
+    name="kvtracker",
+    help="Real-time monocular camera and object tracking with KV-cached transformers.",
+    epilog=EXIT_CODES_EPILOG,
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,  # errors are reported by failures.reports_errors
+)
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        typer.echo(f"kvtracker-sdk {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _global_options(
+    ctx: typer.Context,
+    verbose: Annotated[int, typer.Option(
+        "--verbose", "-v", count=True, help="More logs: -v info, -vv debug (per frame).")] = 0,
+    quiet: Annotated[int, typer.Option(
+        "--quiet", "-q", count=True, help="Errors only; no progress bar, no summary.")] = 0,
+    log_json: Annotated[bool, typer.Option(
+        "--log-json", help="Logs as JSON lines on stderr (for log collectors).")] = False,
+    version: Annotated[bool, typer.Option(
+        "--version", callback=_show_version, is_eager=True, help="Print the version.")] = False,
+) -> None:
+    """Real-time monocular camera and object tracking with KV-cached transformers."""
+    state = CliState(verbosity=verbose - quiet, log_json=log_json)
+    configure_logging(state)
+    ctx.obj = state
+
+
+def _register_commands() -> None:
+    for name in _COMMAND_MODULES:
+        importlib.import_module(f"kvtracker_sdk.cli.{name}").register(app)
+    for name in _OPTIONAL_COMMAND_MODULES:
+        if importlib.util.find_spec(f"kvtracker_sdk.cli.{name}") is not None:
+            importlib.import_module(f"kvtracker_sdk.cli.{name}").register(app)
+
+
+_register_commands()
+
+
+def main() -> None:
+    """Console-script entry point (``kvtracker``); exit codes: ``failures.EXIT_CODES``."""
+    app(prog_name="kvtracker")

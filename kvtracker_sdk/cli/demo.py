@@ -1,0 +1,131 @@
+"""``kvtracker demo``: the whole pipeline offline, on a fresh machine, with nothing downloaded.
+
+The simulated backend stands in for the network: it renders frames of a known camera path and
+answers with that path's poses through noise and a fresh random Sim(3) per mapping pass (as Pi3
+answers in each pass's own frame and scale), and drops its confidence over a "camera covered"
+segment. Everything else is the real SDK: the tracker, its state machine, keyframing, gauge
+alignment, the writers and the evaluation. Every output says SIMULATED.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
+from kvtracker_sdk.cli.logging_setup import CliState
+from kvtracker_sdk.cli.outputs import RunDescription
+from kvtracker_sdk.cli.run_loop import InputFrame
+from kvtracker_sdk.cli.session import OutputOptions, run_session
+from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.log import get_logger
+
+__all__ = ["SIMULATED_NOTICE", "demo", "register"]
+
+_log = get_logger(__name__)
+
+SIMULATED_NOTICE = (
+    "SIMULATED run: frames and poses come from a simulated backend driven by a known trajectory "
+    "(noisy ground truth), not from a neural network; accuracy numbers say nothing about a model."
+)
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        height, width = (int(v) for v in text.lower().split("x"))
+    except ValueError as exc:
+        raise ConfigError(f"--size {text!r}: expected HEIGHTxWIDTH, e.g. 240x320") from exc
+    if min(height, width) < 28:
+        raise ConfigError(f"--size {text!r}: frames need at least 28 pixels a side")
+    return height, width
+
+
+def _parse_segment(text: str) -> tuple[int, int]:
+    try:
+        start, stop = (int(v) for v in text.split(":"))
+    except ValueError as exc:
+        raise ConfigError(f"--loss {text!r}: expected START:STOP frame indices") from exc
+    if not 0 <= start < stop:
+        raise ConfigError(f"--loss {text!r}: need 0 <= START < STOP")
+    return start, stop
+
+
+@reports_errors
+def demo(
+    ctx: typer.Context,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("kvtracker_demo"),
+    gt: Annotated[Path | None, typer.Option(
+        "--gt", help="Drive the simulation with this TUM groundtruth.txt instead of the built-in "
+        "hand-held orbit.")] = None,
+    frames: Annotated[int | None, typer.Option(
+        help="Frames to run (at 30 Hz). [default: 600 for the orbit, all of --gt]")] = None,
+    size: Annotated[str, typer.Option(help="Rendered frame size HEIGHTxWIDTH.")] = "240x320",
+    loss: Annotated[str | None, typer.Option(
+        help="Frames START:STOP where the camera is covered. [default: 1.5 s from 55 %]")] = None,
+    no_loss: Annotated[bool, typer.Option("--no-loss", help="Never lose tracking.")] = False,
+    noise_cm: Annotated[float, typer.Option(help="Pose noise per axis (cm).")] = 1.0,
+    noise_deg: Annotated[float, typer.Option(help="Rotation noise (degrees).")] = 0.3,
+    seed: Annotated[int, typer.Option(help="Seed of the path and the noise.")] = 0,
+    resolution: Annotated[int, typer.Option(help="Model input side d (224, 308, 518).")] = 308,
+    keyframe_interval: Annotated[int, typer.Option(help="A keyframe every N frames.")] = 50,
+    async_mapping: Annotated[bool, typer.Option(
+        "--async-mapping", help="Rebuild the map on a worker thread.")] = False,
+    rerun: Annotated[Path | None, typer.Option(
+        help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
+    voxel_size: Annotated[float | None, typer.Option(
+        help="Voxel edge of points.ply (0 keeps all). [default: auto]")] = None,
+) -> None:
+    """Run the tracker offline on a simulated hand-held camera and write every output."""
+    from kvtracker_sdk.backends.simulated import SimulatedBackend
+    from kvtracker_sdk.backends.simulated_scene import GroundTruth
+    from kvtracker_sdk.cli.demo_trajectory import default_loss_segment, handheld_orbit
+    from kvtracker_sdk.config import TrackerConfig
+    from kvtracker_sdk.io.trajectory import Trajectory
+    from kvtracker_sdk.tracking.tracker import Tracker
+
+    state: CliState = ctx.find_root().obj
+    image_size = _parse_size(size)
+    if frames is not None and frames < 1:
+        raise ConfigError(f"--frames must be >= 1, got {frames}")
+    if gt is not None:
+        truth = GroundTruth.from_tum(gt, rate_hz=30.0)
+        if frames is not None:
+            truth = GroundTruth(truth.timestamps[:frames].copy(), truth.poses[:frames].copy())
+    else:
+        truth = handheld_orbit(frames or 600, seed=seed)
+    segment = None if no_loss else (_parse_segment(loss) if loss else default_loss_segment(len(truth)))
+    backend = SimulatedBackend(
+        truth, translation_noise_m=noise_cm / 100.0, rotation_noise_deg=noise_deg,
+        loss_segments=[segment] if segment else [], seed=seed,
+    )
+    config = TrackerConfig.from_dict({
+        "resolution": resolution,
+        "keyframing": {"interval_frames": keyframe_interval},
+        "threading": {"async_mapping": async_mapping},
+    })
+    if state.chatty:
+        typer.echo(SIMULATED_NOTICE, err=True)
+    else:
+        _log.warning("simulated run", notice=SIMULATED_NOTICE)
+    description = RunDescription(
+        "demo", str(gt) if gt else "built-in hand-held orbit", simulated=True,
+        details={"notice": SIMULATED_NOTICE, "frames": len(truth), "size": list(image_size),
+                 "loss_segment": list(segment) if segment else None, "seed": seed,
+                 "noise_cm": noise_cm, "noise_deg": noise_deg},
+    )
+    options = OutputOptions(
+        out, rerun=rerun, voxel_size=voxel_size,
+        ground_truth=Trajectory(truth.timestamps, truth.poses), write_ground_truth=True,
+    )
+    rendered = (
+        InputFrame(f.image, f.timestamp) for f in backend.frames(image_size, textured=True)
+    )
+    with Tracker(config, backend) as tracker:
+        run_session(state, tracker, rendered, total=len(truth), description=description,
+                    options=options, announce_states=True)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("demo", epilog=EXIT_CODES_EPILOG)(demo)

@@ -1,0 +1,71 @@
+"""What ``kvtracker track`` reads: frame selection, mask folders, boxes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
+from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError
+from kvtracker_sdk.io.sources import ImageFolderSource
+
+
+@pytest.fixture
+def folder(tmp_path: Path) -> Path:
+    """Ten 16x20 frames whose red channel is their index; masks named 1.png ... 10.png."""
+    frames, masks = tmp_path / "frames", tmp_path / "masks"
+    frames.mkdir()
+    masks.mkdir()
+    for k in range(10):
+        image = np.zeros((16, 20, 3), np.uint8)
+        image[..., 2] = k  # BGR on disk: red
+        cv2.imwrite(str(frames / f"f{k:02d}.png"), image)
+        mask = np.zeros((16, 20), np.uint8)
+        mask[: k + 1] = 255  # mask k covers k + 1 rows
+        cv2.imwrite(str(masks / f"{k + 1}.png"), mask)
+    return tmp_path
+
+
+def test_selection_takes_start_stride_and_limit(folder: Path) -> None:
+    source = ImageFolderSource(folder / "frames", fps=10.0)
+    frames = list(read_frames(source, FrameSelection(start=1, stride=3, max_frames=2)))
+    assert [int(f.image[0, 0, 0]) for f in frames] == [1, 4]
+    assert [f.timestamp for f in frames] == [0.1, 0.4]
+    assert FrameSelection(1, 3, 2).count(10) == 2 and FrameSelection(1, 3).count(10) == 3
+    assert FrameSelection().count(0) is None  # a video that does not declare its length
+
+
+def test_masks_follow_natural_order(folder: Path) -> None:
+    masks = MaskFolder(folder / "masks")  # 1.png, 2.png, ..., 10.png (not 1, 10, 2, ...)
+    source = ImageFolderSource(folder / "frames")
+    frames = list(read_frames(source, FrameSelection(stride=4), masks=masks))
+    assert [int(f.mask.sum(axis=1).astype(bool).sum()) for f in frames] == [1, 5, 9]
+    assert all(f.mask.dtype == bool for f in frames)
+
+
+def test_too_few_masks_is_a_mask_error(folder: Path) -> None:
+    (folder / "masks" / "10.png").unlink()
+    frames = read_frames(ImageFolderSource(folder / "frames"), FrameSelection(),
+                         masks=MaskFolder(folder / "masks"))
+    with pytest.raises(MaskError, match="no mask for frame 9"):
+        list(frames)
+
+
+@pytest.mark.parametrize("bad", ["1,2,3", "a,b,c,d", "", "1,2,3,4,5"])
+def test_bad_boxes(bad: str) -> None:
+    with pytest.raises(BBoxError):
+        parse_bbox(bad)
+
+
+def test_box_parsing_and_bad_options(tmp_path: Path) -> None:
+    assert parse_bbox(" 10, 20,30 40 ") == (10.0, 20.0, 30.0, 40.0)
+    with pytest.raises(ConfigError):
+        FrameSelection(stride=0)
+    with pytest.raises(SourceError):
+        MaskFolder(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SourceError, match="no images"):
+        MaskFolder(tmp_path / "empty")
