@@ -18,8 +18,10 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import socket
 from collections.abc import Mapping
 from pathlib import Path
+from urllib.parse import urlparse
 
 import torch
 from torch import nn
@@ -63,21 +65,45 @@ def resolve_weights(weights: str | os.PathLike[str], *, filename: str = DEFAULT_
 
 def _download(repo_id: str, filename: str) -> Path:
     try:
-        from huggingface_hub import hf_hub_download
+        import huggingface_hub
     except ImportError as exc:
         raise MissingDependencyError(
             f"loading {repo_id!r} from the hub needs huggingface_hub: pip install 'kvtracker-sdk[hub]', "
             f"or pass the path of a local {filename}"
         ) from exc
+    hint = (
+        f"Download it on a machine with network access and pass the local file or its folder "
+        f"instead, e.g. TorchBackend.from_pretrained('/path/to/{filename}')"
+    )
+    try:  # a copy in the local hub cache needs no network
+        return Path(huggingface_hub.hf_hub_download(repo_id, filename, local_files_only=True))
+    except Exception:  # not cached: fall through to the network
+        pass
+    # Without this check huggingface_hub retries an unreachable host for ~25 s before failing.
+    if not _hub_reachable(huggingface_hub.constants.ENDPOINT):
+        raise WeightsNotFoundError(
+            f"{filename} of hub repo {repo_id!r} is not in the local cache and the hub cannot be "
+            f"reached (no network). {hint}"
+        )
     try:
-        return Path(hf_hub_download(repo_id=repo_id, filename=filename))
-    # Offline mode, no network, unknown repo or file, auth: for the caller all mean "not found".
+        return Path(huggingface_hub.hf_hub_download(repo_id, filename))
+    # Offline mode, unknown repo or file, auth: for the caller all mean "not found".
     except Exception as exc:
         raise WeightsNotFoundError(
-            f"could not get {filename} of hub repo {repo_id!r} ({type(exc).__name__}: {exc}). "
-            f"Download it on a machine with network access and pass the local file or its folder "
-            f"instead, e.g. TorchBackend.from_pretrained('/path/to/{filename}')"
+            f"could not get {filename} of hub repo {repo_id!r} ({type(exc).__name__}: {exc}). {hint}"
         ) from exc
+
+
+def _hub_reachable(endpoint: str) -> bool:
+    """True if the hub's host name resolves (a fast, offline-safe proxy for 'network is up')."""
+    host = urlparse(endpoint).hostname
+    if not host:
+        return False
+    try:
+        socket.getaddrinfo(host, 443)
+    except OSError:
+        return False
+    return True
 
 
 def check_state_dict(model: nn.Module, state_dict: Mapping[str, torch.Tensor]) -> None:

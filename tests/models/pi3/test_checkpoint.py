@@ -104,6 +104,30 @@ def test_hub_id_offline_says_how_to_pass_a_file(
     assert isinstance(info.value, FileNotFoundError)
 
 
+def test_unreachable_hub_fails_fast_without_retrying(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No network and no cached copy: a clear error at once, never huggingface_hub's retry loop."""
+    huggingface_hub = pytest.importorskip("huggingface_hub")
+    import socket
+
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hf" / "hub"))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", False)
+
+    def no_dns(*args: object, **kwargs: object) -> None:
+        raise socket.gaierror("Name or service not known")
+
+    def must_not_download(*args: object, **kwargs: object) -> None:
+        if not kwargs.get("local_files_only"):
+            raise AssertionError("the network download must not be attempted")
+        raise huggingface_hub.errors.LocalEntryNotFoundError("not cached")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_dns)
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", must_not_download)
+    with pytest.raises(WeightsNotFoundError, match="cannot be reached"):
+        load_pi3("yyfz233/Pi3")
+
+
 def test_rejects_pickles_and_unknown_paths(tmp_path: Path) -> None:
     pickle = tmp_path / "model.pth"
     pickle.write_bytes(b"not read")
