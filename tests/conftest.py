@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.helpers import shared_path
+from tests.helpers import dev_dependency, shared_path
 
 
 @pytest.fixture(scope="session")
@@ -48,3 +48,25 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def golden_onnx_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The golden Pi3 weights exported to ONNX (``kvtracker_sdk.export_onnx``), once per session.
+
+    The export is checked against PyTorch as it is written; ~30-60 s on a 2-core CPU.
+    """
+    dev_dependency("onnxruntime")
+    from kvtracker_sdk.export_onnx import export_onnx
+
+    folder = tmp_path_factory.mktemp("onnx") / "pi3-golden"
+    export_onnx(folder, weights=shared_path("golden", "pi3", "weights.safetensors"))
+    return folder
+
+
+@pytest.fixture(scope="session", autouse=True)
+def onnx_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """``OnnxBackend.from_pretrained(checkpoint)`` exports into a session folder, not ~/.cache."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("KVTRACKER_CACHE_DIR", str(tmp_path_factory.mktemp("kvtracker-cache")))
+        yield

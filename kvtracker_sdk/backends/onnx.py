@@ -1,0 +1,171 @@
+"""``OnnxBackend``: the ``Backend`` contract served by ONNX Runtime from an exported folder.
+
+    backend = OnnxBackend("pi3-onnx/")                      # kvtracker export-onnx made the folder
+    backend = OnnxBackend("pi3-onnx/", device="cuda")       # with onnxruntime-gpu installed
+    backend = OnnxBackend.from_pretrained("model.safetensors")   # exported once, then reused
+    mapped = backend.map(keyframes)                         # uint8 [N, H, W, 3] at model resolution
+    result = backend.track(frame, mapped.cache, heads=HeadSet.CAMERA)
+
+It computes the same function as ``TorchBackend`` with the same weights: ``info.fingerprint``
+and ``info.layout`` are equal (read from the export's manifest), so a tracker swaps between the
+two live (``Tracker.set_backend``) and maps saved by one load in the other. The cache is a
+float32 ``KVCache`` on the CPU (where ONNX Runtime reads its inputs, whatever the provider):
+tracking hands each layer's whole buffer to the graph as a numpy view — no copy — with the
+number of cached tokens, and the graph ignores the scratch tokens after them.
+
+onnxruntime is imported when a backend is created (``MissingDependencyError`` names the
+``[onnx]`` extra without it). PyTorch is still needed for the ``KVCache`` itself, not to compute.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.special import expit
+
+from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
+from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
+from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
+from kvtracker_sdk.backends.onnx_runtime import HeadOutputs, Pi3OnnxRunner, providers_for
+from kvtracker_sdk.cache.kv_cache import KVCache
+from kvtracker_sdk.errors import ImageShapeError, ModelError, StateError
+from kvtracker_sdk.types import HeadSet
+
+__all__ = ["OnnxBackend"]
+
+
+class OnnxBackend:
+    """Pi3 on ONNX Runtime; implements ``kvtracker_sdk.backends.base.Backend``.
+
+    ``folder``: an export (``kvtracker export-onnx``). ``device``: "cpu" (default), "cuda[:N]",
+    "coreml" or "directml", where the installed onnxruntime provides it; ``providers`` (names or
+    (name, options) pairs) overrides it. ``threads``: intra-op CPU threads (None: one per
+    physical core).
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike[str],
+        *,
+        device: str = "cpu",
+        providers: Sequence[Any] | None = None,
+        threads: int | None = None,
+    ) -> None:
+        self.folder = Path(folder)
+        self.manifest: OnnxManifest = read_manifest(self.folder)
+        if self.manifest.family != "pi3":
+            raise ModelError(f"{folder}: OnnxBackend serves pi3 exports, not {self.manifest.family}")
+        self._runner: Pi3OnnxRunner | None = Pi3OnnxRunner(
+            self.folder, self.manifest, providers=providers_for(device, providers), threads=threads
+        )
+        # the cache stays on the CPU whatever the provider: ORT reads host memory
+        self._info = self.manifest.backend_info(
+            device="cpu", accelerations=self._runner.active_providers
+        )
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        source: str | os.PathLike[str],
+        *,
+        device: str = "cpu",
+        providers: Sequence[Any] | None = None,
+        threads: int | None = None,
+        cache_dir: str | os.PathLike[str] | None = None,
+    ) -> OnnxBackend:
+        """An export folder, or a Pi3 checkpoint (file, folder or hub id) exported on first use.
+
+        A checkpoint is exported once into ``cache_dir`` and reused afterwards
+        (``kvtracker_sdk.export_onnx.reuse``; that first call needs PyTorch and the ``[onnx]``
+        extra, and takes minutes for the full model). Deployments ship the export folder.
+        """
+        folder = Path(source)
+        if not (folder / MANIFEST_NAME).is_file():
+            from kvtracker_sdk.export_onnx.reuse import exported_folder
+
+            folder = exported_folder(source, cache_dir=cache_dir)
+        return cls(folder, device=device, providers=providers, threads=threads)
+
+    # ------------------------------------------------------------------ Backend protocol
+    @property
+    def info(self) -> BackendInfo:
+        return self._info
+
+    def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
+        """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
+        runner = self._live_runner()
+        frames = self._to_input(images)
+        check_masks(masks, images)
+        start = time.perf_counter()
+        outputs, keys, values = runner.map(frames)
+        cache = KVCache.from_layers(
+            [torch.from_numpy(k) for k in keys],
+            [torch.from_numpy(v) for v in values],
+            layout=self._info.layout,
+            tokens_per_frame=self._info.tokens_per_frame(*images.shape[1:3]),
+            keyframe_ids=range(images.shape[0]),
+        )
+        assert outputs.conf_logits is not None and outputs.local_points is not None  # all heads
+        return MapResult(
+            poses=outputs.poses,
+            confidence=expit(outputs.conf_logits),
+            local_points=outputs.local_points,
+            cache=cache,
+            timings_ms={"map": (time.perf_counter() - start) * 1e3},
+        )
+
+    def track(
+        self, image: np.ndarray, cache: KVCache, *, heads: HeadSet = HeadSet.CONFIDENCE
+    ) -> TrackResult:
+        """Track one frame uint8 [H, W, 3] against ``cache`` (pose in the cache's raw frame).
+
+        The cache is only read (under ``cache.lock``); it must be float32 on the CPU
+        (``cache.to(dtype=torch.float32, device="cpu")`` converts one made elsewhere).
+        """
+        runner = self._live_runner()
+        if not isinstance(image, np.ndarray) or image.ndim != 3:
+            raise ImageShapeError(
+                f"track expects one image [H, W, 3], got {getattr(image, 'shape', type(image))}"
+            )
+        frame = self._to_input(image[None])
+        check_cache(cache, self._info, *image.shape[:2])
+        start = time.perf_counter()
+        with cache.lock:
+            past = [
+                tuple(np.ascontiguousarray(buffer.numpy()) for buffer in cache.buffers(layer))
+                for layer in range(cache.layout.num_layers)
+            ]
+            outputs = runner.track(frame, past, cache.length, heads)  # type: ignore[arg-type]
+        return self._track_result(outputs, {"track": (time.perf_counter() - start) * 1e3})
+
+    def close(self) -> None:
+        """Release the sessions (and their memory); later calls raise ``StateError``. Idempotent."""
+        self._runner = None
+
+    # ------------------------------------------------------------------ helpers
+    def _live_runner(self) -> Pi3OnnxRunner:
+        if self._runner is None:
+            raise StateError("this OnnxBackend is closed")
+        return self._runner
+
+    def _to_input(self, images: np.ndarray) -> np.ndarray:
+        """uint8 [N, H, W, 3] -> float32 [N, 3, H, W] in [0, 1], C-contiguous."""
+        frames = check_frames(images, self._info.patch_size)
+        return np.ascontiguousarray(frames.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+
+    @staticmethod
+    def _track_result(outputs: HeadOutputs, timings: dict[str, float]) -> TrackResult:
+        confidence_map = None if outputs.conf_logits is None else expit(outputs.conf_logits[0])
+        return TrackResult(
+            pose=outputs.poses[0],
+            confidence=None if confidence_map is None else float(confidence_map.mean()),
+            confidence_map=confidence_map,
+            local_points=None if outputs.local_points is None else outputs.local_points[0],
+            timings_ms=timings,
+        )

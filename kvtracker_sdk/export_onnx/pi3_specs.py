@@ -1,0 +1,161 @@
+"""The Pi3 graphs as data: module, input and output names with their dims, example inputs.
+
+``pi3_graphs(config)`` lists every graph of an export in the order they run. Dims are ints
+(fixed by the architecture) or names (dynamic axes); the same names appear in the ``.onnx``
+files and in ``manifest.json``. ``dynamic_shapes`` turns them into ``torch.export`` dims, and
+``example_inputs(model, size)`` computes with PyTorch the example arguments of every graph.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+from kvtracker_sdk.backends.onnx_manifest import (
+    TensorSpec,
+    past_key_name,
+    past_value_name,
+    present_key_name,
+    present_value_name,
+)
+from kvtracker_sdk.export_onnx.pi3_graphs import (
+    CameraHeadGraph,
+    ConfHeadGraph,
+    DecoderMapGraph,
+    DecoderTrackGraph,
+    EncoderGraph,
+    PointsHeadGraph,
+)
+from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
+
+__all__ = ["EXAMPLE_KEYFRAMES", "GraphDef", "dynamic_shapes", "example_inputs", "pi3_graphs"]
+
+EXAMPLE_KEYFRAMES = 2  # frames of the export's example inputs (not 1: torch.export would fix it)
+
+
+@dataclass(frozen=True)
+class GraphDef:
+    """One graph: the module computing it and its flattened inputs and outputs."""
+
+    name: str
+    module: Callable[[Pi3], nn.Module]
+    inputs: tuple[TensorSpec, ...]
+    outputs: tuple[TensorSpec, ...]
+
+
+def _hidden(frames: int | str, dim: int, registers: int) -> tuple[TensorSpec, TensorSpec]:
+    return (
+        TensorSpec(name="hidden_registers", shape=(frames, registers, 2 * dim)),
+        TensorSpec(name="hidden_patches", shape=(frames, "grid_h", "grid_w", 2 * dim)),
+    )
+
+
+def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
+    """Every graph of a Pi3 export (see ``backends/onnx_manifest.py`` for their meaning)."""
+    dim = config.decoder.embed_dim
+    registers = config.decoder.num_register_tokens
+    heads, head_dim = config.decoder.num_heads, config.decoder.head_dim
+    layers = len(config.decoder.global_block_indices)
+    patches = TensorSpec(name="patch_tokens", shape=("frames", "grid_h", "grid_w", dim))
+    query_patches = TensorSpec(name="patch_tokens", shape=(1, "grid_h", "grid_w", dim))
+    hidden = _hidden("frames", dim, registers)
+    present = tuple(
+        TensorSpec(name=name(i), shape=(1, heads, "map_tokens", head_dim))
+        for i in range(layers)
+        for name in (present_key_name, present_value_name)
+    )
+    past = tuple(
+        TensorSpec(name=name(i), shape=(1, heads, "past_capacity", head_dim))
+        for i in range(layers)
+        for name in (past_key_name, past_value_name)
+    )
+    return [
+        GraphDef(
+            "encoder",
+            EncoderGraph,
+            (TensorSpec(name="images", shape=("frames", 3, "height", "width")),),
+            (patches,),
+        ),
+        GraphDef("decoder_map", DecoderMapGraph, (patches,), (*hidden, *present)),
+        GraphDef(
+            "decoder_track",
+            DecoderTrackGraph,
+            (query_patches, TensorSpec(name="past_length", shape=(), dtype="int64"), *past),
+            _hidden(1, dim, registers),
+        ),
+        GraphDef(
+            "head_camera",
+            CameraHeadGraph,
+            hidden,
+            (
+                TensorSpec(name="rotation_raw", shape=("frames", 9)),
+                TensorSpec(name="translation", shape=("frames", 3)),
+            ),
+        ),
+        GraphDef(
+            "head_conf",
+            ConfHeadGraph,
+            hidden,
+            (TensorSpec(name="conf_logits", shape=("frames", "height", "width")),),
+        ),
+        GraphDef(
+            "head_points",
+            PointsHeadGraph,
+            hidden,
+            (TensorSpec(name="local_points", shape=("frames", "height", "width", 3)),),
+        ),
+    ]
+
+
+def dynamic_shapes(graph: GraphDef, patch_size: int) -> tuple[Any, ...]:
+    """``torch.export`` dynamic shapes of the graph's forward arguments.
+
+    One ``Dim`` per dim name; "height"/"width" are ``patch_size`` times the grid dims, so the
+    exporter knows H and W divide exactly into patches.
+    """
+    dims: dict[str, Any] = {}
+
+    def dim(name: str) -> Any:
+        if name in ("height", "width"):
+            return patch_size * dim("grid_h" if name == "height" else "grid_w")
+        if name not in dims:
+            dims[name] = torch.export.Dim(name)
+        return dims[name]
+
+    per_input = [
+        {axis: dim(size) for axis, size in enumerate(spec.shape) if isinstance(size, str)} or None
+        for spec in graph.inputs
+    ]
+    if graph.name == "decoder_track":  # forward(patch_tokens, past_length, past: tuple)
+        return (per_input[0], per_input[1], tuple(per_input[2:]))
+    return tuple(per_input)
+
+
+@torch.no_grad()
+def example_inputs(model: Pi3, size: tuple[int, int], *, seed: int = 0) -> dict[str, tuple[Any, ...]]:
+    """Forward arguments of every graph for ``EXAMPLE_KEYFRAMES`` keyframes and one query of
+    ``size`` = (H, W), computed with PyTorch from seeded random images.
+
+    The tracking decoder's past has one frame of spare capacity beyond ``past_length`` (as a
+    ``KVCache`` buffer has), so that the export keeps the two sizes apart.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    images = torch.rand(EXAMPLE_KEYFRAMES + 1, 3, *size, generator=generator)
+    encoder = EncoderGraph(model)
+    keyframe_patches = encoder(images[:EXAMPLE_KEYFRAMES])
+    hidden_registers, hidden_patches, *kv = DecoderMapGraph(model)(keyframe_patches)
+    tokens_per_frame = kv[0].shape[2] // EXAMPLE_KEYFRAMES
+    past = tuple(torch.cat((t, t[:, :, :tokens_per_frame]), dim=2) for t in kv)
+    hidden = (hidden_registers, hidden_patches)
+    return {
+        "encoder": (images[:EXAMPLE_KEYFRAMES],),
+        "decoder_map": (keyframe_patches,),
+        "decoder_track": (encoder(images[EXAMPLE_KEYFRAMES:]), torch.tensor(kv[0].shape[2]), past),
+        "head_camera": hidden,
+        "head_conf": hidden,
+        "head_points": hidden,
+    }

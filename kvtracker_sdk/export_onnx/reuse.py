@@ -1,0 +1,48 @@
+"""Checkpoints exported once and reused: what ``OnnxBackend.from_pretrained(checkpoint)`` serves.
+
+``exported_folder(weights)`` loads a checkpoint (``.safetensors`` file, folder or hub id),
+and returns ``<cache_dir>/pi3-<weights fingerprint>``, exporting into it first unless an export
+of the same weights is already there. The default ``cache_dir`` is
+``$KVTRACKER_CACHE_DIR/onnx``, else ``$XDG_CACHE_HOME/kvtracker_sdk/onnx``, else
+``~/.cache/kvtracker_sdk/onnx``. The first call for the full model takes minutes (the export is
+checked against PyTorch); later calls only hash the weights.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from kvtracker_sdk.backends.onnx_manifest import read_manifest
+from kvtracker_sdk.errors import ModelError
+from kvtracker_sdk.export_onnx.exporter import export_pi3
+from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.models.pi3 import load_pi3
+
+__all__ = ["default_cache_dir", "exported_folder"]
+
+_log = get_logger(__name__)
+
+
+def default_cache_dir() -> Path:
+    """Where exports of checkpoints are kept (see the module docstring)."""
+    if root := os.environ.get("KVTRACKER_CACHE_DIR"):
+        return Path(root) / "onnx"
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "kvtracker_sdk" / "onnx"
+
+
+def exported_folder(
+    weights: str | os.PathLike[str], *, cache_dir: str | os.PathLike[str] | None = None
+) -> Path:
+    """The export folder of a Pi3 checkpoint, made on first use (see the module docstring)."""
+    loaded = load_pi3(weights)
+    folder = Path(cache_dir or default_cache_dir()) / f"pi3-{loaded.fingerprint}"
+    try:
+        if read_manifest(folder).weights_fingerprint == loaded.fingerprint:
+            return folder
+    except ModelError:  # absent, incomplete or from another SDK version: export again
+        pass
+    _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
+    export_pi3(loaded.model, folder, weights_fingerprint=loaded.fingerprint, overwrite=True)
+    return folder

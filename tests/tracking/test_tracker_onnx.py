@@ -1,0 +1,124 @@
+"""A tracker session on the 20 real TUM frames: ONNX Runtime, PyTorch, and a live swap between them.
+
+The golden (small, random) Pi3 weights, exported once per test session. Both runtimes compute
+the same fp32 function, so every pose agrees within 1e-4 (the issue's tolerance) whichever
+backend tracked it and whichever built the map. Keyframes every 5 frames: 4 mapping passes, so
+maps made by one runtime are tracked and rebuilt by the other after the swap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from kvtracker_sdk.backends.base import Backend
+from kvtracker_sdk.backends.onnx import OnnxBackend
+from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.config import TrackerConfig
+from kvtracker_sdk.errors import BackendMismatchError
+from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.types import FrameResult
+from tests.helpers import shared_path
+
+CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 5}}
+SWAP_AT = 8  # between two keyframes: the swap keeps a map built by the other runtime
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[tuple[float, np.ndarray]]:
+    files = sorted(shared_path("data", "tum_fr2_desk", "rgb").glob("*.png"))
+    assert len(files) == 20
+    return [(float(f.stem), cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB)) for f in files]
+
+
+@pytest.fixture(scope="module")
+def make_torch() -> Callable[[], TorchBackend]:
+    return lambda: TorchBackend.from_pretrained(shared_path("golden", "pi3", "weights.safetensors"))
+
+
+@pytest.fixture(scope="module")
+def make_onnx(golden_onnx_dir: Path) -> Callable[[], OnnxBackend]:
+    return lambda: OnnxBackend(golden_onnx_dir, threads=1)
+
+
+def run(
+    frames: list[tuple[float, np.ndarray]],
+    first: Backend,
+    swap_to: Callable[[], Backend] | None = None,
+) -> tuple[list[FrameResult], list[str]]:
+    """Push every frame; with ``swap_to``, swap backends before frame ``SWAP_AT``."""
+    results, runtimes = [], []
+    with Tracker(TrackerConfig.from_dict(CONFIG), first) as tracker:
+        for index, (stamp, image) in enumerate(frames):
+            if swap_to is not None and index == SWAP_AT:
+                tracker.set_backend(swap_to()).close()
+            results.append(tracker.push_frame(image, timestamp=stamp))
+            runtimes.append(tracker.backend.info.backend)
+        tracker.backend.close()
+    return results, runtimes
+
+
+def assert_same_poses(results: list[FrameResult], expected: list[FrameResult]) -> None:
+    assert [r.keyframe_id for r in results] == [r.keyframe_id for r in expected]
+    assert [r.state for r in results] == [r.state for r in expected]
+    for result, reference in zip(results, expected, strict=True):
+        assert result.pose is not None and reference.pose is not None
+        np.testing.assert_allclose(result.pose.T_world_cam, reference.pose.T_world_cam, atol=1e-4)
+
+
+@pytest.fixture(scope="module")
+def torch_session(
+    frames: list[tuple[float, np.ndarray]], make_torch: Callable[[], TorchBackend]
+) -> list[FrameResult]:
+    results, _ = run(frames, make_torch())
+    assert sum(r.is_keyframe for r in results) == 4
+    return results
+
+
+@pytest.mark.slow
+def test_onnx_session_gives_the_torch_poses(
+    frames: list[tuple[float, np.ndarray]],
+    make_onnx: Callable[[], OnnxBackend],
+    torch_session: list[FrameResult],
+) -> None:
+    results, runtimes = run(frames, make_onnx())
+    assert set(runtimes) == {"onnx"}
+    assert_same_poses(results, torch_session)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("direction", ["torch->onnx", "onnx->torch"])
+def test_live_swap_keeps_the_map_and_the_poses(
+    frames: list[tuple[float, np.ndarray]],
+    make_torch: Callable[[], TorchBackend],
+    make_onnx: Callable[[], OnnxBackend],
+    torch_session: list[FrameResult],
+    direction: str,
+) -> None:
+    first, second = (
+        (make_torch, make_onnx) if direction == "torch->onnx" else (make_onnx, make_torch)
+    )
+    results, runtimes = run(frames, first(), swap_to=second)
+    names = direction.split("->")
+    assert runtimes == [names[0]] * SWAP_AT + [names[1]] * (len(frames) - SWAP_AT)
+    assert_same_poses(results, torch_session)
+
+
+def test_swap_to_other_weights_is_refused(
+    frames: list[tuple[float, np.ndarray]], make_onnx: Callable[[], OnnxBackend]
+) -> None:
+    from tests.models.pi3.factories import random_pi3, tiny_config
+
+    stranger = TorchBackend(random_pi3(tiny_config(dim=64, depth=8), seed=5))  # the golden layout
+    with Tracker(TrackerConfig.from_dict(CONFIG), make_onnx()) as tracker:
+        tracker.push_frame(frames[0][1], timestamp=frames[0][0])
+        assert stranger.info.layout == tracker.backend.info.layout
+        with pytest.raises(BackendMismatchError, match="fingerprint"):
+            tracker.set_backend(stranger)
+        assert tracker.backend.info.backend == "onnx"  # unchanged, and still tracking
+        assert tracker.push_frame(frames[1][1], timestamp=frames[1][0]).pose_valid
+        tracker.backend.close()
