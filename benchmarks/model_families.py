@@ -12,7 +12,7 @@ cache bytes per keyframe.
 Timing (``shared_cpu_timing``): round-robin rounds over a group's points, wall and process CPU
 time per call, the minimum reported. Each round also records the cores other processes used
 meanwhile; a round is contended when they used more than the cores the run leaves free plus
-``--max-others``. Rounds repeat (after waiting up to ``--max-wait`` s for quiet) until every
+``--max-others``. Rounds repeat (waiting for quiet, ``--max-wait`` s per group stage) until every
 point has ``--repeats`` clean samples, ``3 * --repeats`` rounds ran or ``--budget`` s passed;
 the tables use clean samples only (``*``: none was clean). ``--update`` re-measures some groups
 into an existing JSON, e.g. when a quieter spell comes.
@@ -194,7 +194,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     add("--clock", choices=["wall", "cpu"], default="wall")
     add("--max-others", type=float, default=0.25,
         help="cores other processes may use beyond those the run leaves free")  # fmt: skip
-    add("--max-wait", type=float, default=300.0, help="seconds to wait for a quiet machine")
+    add("--max-wait", type=float, default=300.0,
+        help="seconds to wait for quiet, per stage of a group (start, tracking, mapping)")  # fmt: skip
     add("--name", default="model_families", help="output file stem")
     add("--out-dir", type=Path, default=RESULTS)
     add("--update", action="store_true",

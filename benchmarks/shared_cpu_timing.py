@@ -88,10 +88,10 @@ def measure_rounds(
 ) -> None:
     """Time each call once per round into its samples, with the cores others used during the
     round. Round-robin, so a busy spell hits all calls alike; after a contended round (others >
-    ``allowed`` cores) wait up to ``max_wait`` s for quiet. Stops when every call has
+    ``allowed`` cores) wait for quiet, ``max_wait`` s in all. Stops when every call has
     ``repeats`` clean samples, after ``warmup + 3 * repeats`` rounds, or once the timed rounds
     (waits excluded) took ``budget`` seconds."""
-    spent, rounds = 0.0, 0
+    spent, rounds, wait_until = 0.0, 0, time.monotonic() + max_wait
     while True:
         load, timed = OtherLoad(), [(samples, *time_once(call)) for samples, call in calls]
         others = load.cores()
@@ -104,7 +104,7 @@ def measure_rounds(
             if clean >= repeats or rounds >= warmup + 3 * repeats or spent > budget:
                 return
         if others > allowed:
-            wait_for_quiet(allowed, max_wait)
+            wait_for_quiet(allowed, max(0.0, wait_until - time.monotonic()))
 
 
 def best(samples: Samples | None, clock: str, allowed: float) -> tuple[float, bool] | None:
