@@ -51,3 +51,63 @@ def test_pose_is_immutable_and_exposes_named_quaternions() -> None:
     np.testing.assert_allclose(pose.as_quat_xyzw(), [0, 0, 0, 1])
     np.testing.assert_allclose(pose.as_quat_wxyz(), [1, 0, 0, 0])
     np.testing.assert_allclose(pose.inverse().translation, [-1, -2, -3])
+
+
+# The public surface, pinned: adding or removing a name is a deliberate, reviewed change.
+PUBLIC_API = [
+    "BBoxError",
+    "Backend",
+    "BackendError",
+    "BackendInfo",
+    "BackendMismatchError",
+    "CacheError",
+    "CacheLayout",
+    "CheckpointMismatchError",
+    "ConfigError",
+    "EvaluationError",
+    "FrameResult",
+    "HeadSet",
+    "IllegalTransitionError",
+    "ImageDtypeError",
+    "ImageShapeError",
+    "InputError",
+    "KVCache",
+    "KVTrackerError",
+    "Keyframe",
+    "KeyframeMap",
+    "LoadedMap",
+    "MapCorruptedError",
+    "MapError",
+    "MapFormatError",
+    "MapIOError",
+    "MapInfo",
+    "MapModelMismatchError",
+    "MapResult",
+    "MapStatus",
+    "MapVersionError",
+    "MaskError",
+    "MissingDependencyError",
+    "ModelError",
+    "NonFiniteImageError",
+    "Pose",
+    "ResolutionChangedError",
+    "Sim3",
+    "SimulatedBackend",
+    "SourceError",
+    "StateError",
+    "StateReason",
+    "TorchBackend",
+    "TrackResult",
+    "Tracker",
+    "TrackerConfig",
+    "TrackingState",
+    "TrajectoryError",
+    "WeightsNotFoundError",
+    "__version__",
+    "load_map",
+    "read_map_info",
+]
+
+
+def test_public_api_is_pinned() -> None:
+    assert kvtracker_sdk.__all__ == PUBLIC_API
