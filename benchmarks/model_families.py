@@ -17,7 +17,7 @@ point has ``--repeats`` clean samples, ``3 * --repeats`` rounds ran or ``--budge
 the tables use clean samples only (``*``: none was clean). ``--update`` re-measures some groups
 into an existing JSON, e.g. when a quieter spell comes.
 
-Run from the repository root (about 20 minutes on a quiet 2-core CPU)::
+Run from the repository root (about half an hour on a quiet 2-core CPU, most of it Pi3)::
 
     python -m benchmarks.model_families
     python -m benchmarks.model_families --models da3-small --threads 2
