@@ -23,7 +23,7 @@ Three passes differ only in the camera tokens and the global blocks (see ``DA3Ba
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -225,27 +225,58 @@ class DA3Backbone(nn.Module):
         choose: CameraChoice,
         global_step: GlobalStep,
     ) -> BackboneOutput:
-        batch, views, length, dim = tokens.shape
-        local_positions = grid_positions(*grid, num_prefix_tokens=1, device=tokens.device)
-        local_rope = self._rope(local_positions, tokens.dtype)
-        x = local_x = tokens
-        reference: torch.Tensor | None = None
-        taken: list[torch.Tensor] = []
-        for index, module in enumerate(self.pretrained.blocks):
-            block = cast(Block, module)
+        x = tokens
+        early: list[torch.Tensor] = []  # out layers before alt_start (no official config has one)
+        for index in range(self.alt_start):
             if index == self.alt_start - 1:  # DA3 picks the reference from this block's input
                 camera, reference = choose(x)
-            if index == self.alt_start:
-                x = torch.cat((camera.unsqueeze(2), x[:, :, 1:]), dim=2)
-            if index >= self.alt_start and index % 2 == 1:  # global: [B, N*T, C]
+            x = self.run_per_view(x, [self.pretrained.blocks[index]])
+            if index in self.out_layers:
+                early.append(torch.cat((x, x), dim=-1))
+        output = self.run_alternating(x, grid, camera, global_step, early_out_layers=early)
+        return BackboneOutput(output.features, output.camera_tokens, reference_view=reference)
+
+    @staticmethod
+    def run_per_view(x: torch.Tensor, blocks: Iterable[nn.Module]) -> torch.Tensor:
+        """Blocks before ``alt_start`` (plain DINOv2: no qk-norm, no RoPE) on each view of
+        [B, N, T, C]."""
+        batch, views, length, dim = x.shape
+        flat = x.reshape(batch * views, length, dim)
+        for block in blocks:
+            flat = block(flat)
+        return flat.reshape(x.shape)
+
+    def run_alternating(
+        self,
+        x: torch.Tensor,
+        grid: tuple[int, int],
+        camera: torch.Tensor,
+        global_step: GlobalStep,
+        *,
+        early_out_layers: Sequence[torch.Tensor] = (),
+    ) -> BackboneOutput:
+        """Blocks ``alt_start`` on: ``x`` [B, N, T, C] (the output of block ``alt_start - 1``) with
+        token 0 replaced by ``camera`` [B, N, C] -> the heads' inputs (``reference_view`` None).
+
+        Global blocks go through ``global_step`` (full attention, mapping or tracking); the
+        exported graphs (``export_onnx/da3_graphs.py``) call this with their own step.
+        ``early_out_layers``: the heads' inputs [B, N, T, 2C] of out layers before ``alt_start``.
+        """
+        batch, views, length, dim = x.shape
+        local_positions = grid_positions(*grid, num_prefix_tokens=1, device=x.device)
+        local_rope = self._rope(local_positions, x.dtype)
+        local_x = x  # the local half of an out layer is the last per-view block's output
+        x = torch.cat((camera.unsqueeze(2), x[:, :, 1:]), dim=2)
+        taken = list(early_out_layers)
+        for index in range(self.alt_start, len(self.pretrained.blocks)):
+            block = cast(Block, self.pretrained.blocks[index])
+            if index % 2 == 1:  # global: [B, N*T, C]
                 ordinal = (index - self.alt_start) // 2
                 x = global_step(ordinal, block, x.reshape(batch, views * length, dim))
                 x = x.reshape(batch, views, length, dim)
             else:  # per view: [B*N, T, C]
-                rope = local_rope if index >= self.alt_start else None
-                x = local_x = block(x.reshape(batch * views, length, dim), rope=rope).reshape(
-                    x.shape
-                )
+                flat = x.reshape(batch * views, length, dim)
+                x = local_x = block(flat, rope=local_rope).reshape(x.shape)
             if index in self.out_layers:
                 taken.append(torch.cat((local_x, x), dim=-1))
         norm = self.pretrained.norm
@@ -253,7 +284,7 @@ class DA3Backbone(nn.Module):
             torch.cat((out[..., :dim], norm(out[..., dim:])), dim=-1)[:, :, 1:] for out in taken
         ]
         return BackboneOutput(
-            features=features, camera_tokens=taken[-1][:, :, 0], reference_view=reference
+            features=features, camera_tokens=taken[-1][:, :, 0], reference_view=None
         )
 
     def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
