@@ -119,16 +119,16 @@ class DA3Backbone(nn.Module):
     ) -> BackboneOutput:
         """Normalised images [B, N, 3, H, W] -> ``BackboneOutput`` (``camera_tokens`` [B, N, C]
         from the pose encoder replace the learned ones and skip reference selection)."""
-        tokens, grid = self._tokens(images)
+        tokens, grid = self.embed_views(images)
         views = tokens.shape[1]
 
         def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
             if camera_tokens is not None:
                 return camera_tokens.to(x.dtype), None
             reference = select_reference_view(x[:, :, 0], strategy)
-            return self._learned_camera_tokens(reference, views), reference
+            return self.learned_camera_tokens(reference, views), reference
 
-        rope = self._global_rope(tokens).repeat(views)
+        rope = self.global_rope(tokens).repeat(views)
         return self._run(
             tokens,
             grid,
@@ -140,15 +140,15 @@ class DA3Backbone(nn.Module):
         self, images: torch.Tensor
     ) -> tuple[BackboneOutput, list[torch.Tensor], list[torch.Tensor]]:
         """Keyframes [B, N, 3, H, W] with view 0 as reference -> (output, keys, values)."""
-        tokens, grid = self._tokens(images)
+        tokens, grid = self.embed_views(images)
         batch, views = tokens.shape[:2]
-        rope = self._global_rope(tokens).repeat(views)
+        rope = self.global_rope(tokens).repeat(views)
         keys: list[torch.Tensor] = []
         values: list[torch.Tensor] = []
 
         def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
             reference = torch.zeros(batch, dtype=torch.long, device=x.device)  # keyframe 0
-            return self._learned_camera_tokens(reference, views), reference
+            return self.learned_camera_tokens(reference, views), reference
 
         def step(_: int, block: Block, x: torch.Tensor) -> torch.Tensor:
             out, k, v = block.forward_map(x, rope=rope)
@@ -169,7 +169,7 @@ class DA3Backbone(nn.Module):
             raise ImageShapeError(
                 f"tracking expects views [F, 3, H, W], got shape {tuple(images.shape)}"
             )
-        tokens, grid = self._tokens(images.unsqueeze(0))  # one sequence of F views
+        tokens, grid = self.embed_views(images.unsqueeze(0))  # one sequence of F views
         views, length = tokens.shape[1], tokens.shape[2]
         past = cache.length
         cache.ensure_capacity(past + views * length)
@@ -177,7 +177,7 @@ class DA3Backbone(nn.Module):
         mask = None
         if views > 1:
             mask = keyframe_query_mask(past, views, length, device=tokens.device)[past:]
-        rope = self._global_rope(tokens).repeat(views)
+        rope = self.global_rope(tokens).repeat(views)
 
         def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
             return self.pretrained.camera_token[:, 1:].expand(1, views, -1), None
@@ -189,7 +189,7 @@ class DA3Backbone(nn.Module):
         return self._run(tokens, grid, choose, step)
 
     # ------------------------------------------------------------------ internals
-    def _tokens(self, images: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
+    def embed_views(self, images: torch.Tensor) -> tuple[torch.Tensor, tuple[int, int]]:
         """[B, N, 3, H, W] -> tokens [B, N, T, C] (cls + patches, position-embedded), (h, w)."""
         if images.dim() != 5 or images.shape[2] != 3:
             raise ImageShapeError(
@@ -203,7 +203,7 @@ class DA3Backbone(nn.Module):
             images.shape[-1] // patch,
         )
 
-    def _learned_camera_tokens(self, reference: torch.Tensor, views: int) -> torch.Tensor:
+    def learned_camera_tokens(self, reference: torch.Tensor, views: int) -> torch.Tensor:
         """[B, N, C]: ``camera_token[:, 0]`` for each sequence's reference view, else ``[:, 1]``."""
         is_reference = torch.arange(views, device=reference.device) == reference.unsqueeze(1)
         learned = self.pretrained.camera_token[0]  # [2, C]: reference, other
@@ -214,7 +214,7 @@ class DA3Backbone(nn.Module):
             positions, self.head_dim, base=self.config.backbone.rope_base, dtype=dtype
         )
 
-    def _global_rope(self, tokens: torch.Tensor) -> RopeTable:
+    def global_rope(self, tokens: torch.Tensor) -> RopeTable:
         """One view's global-block table [T, head_dim] (repeat it per view for [N*T])."""
         return self._rope(global_positions(tokens.shape[2], device=tokens.device), tokens.dtype)
 

@@ -7,8 +7,6 @@ Module names match the checkpoint (``resConfUnit1/2.conv1/2``, ``out_conv``).
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -77,12 +75,25 @@ def _sincos(positions: torch.Tensor, width: int, omega_0: float) -> torch.Tensor
     return torch.cat((angles.sin(), angles.cos()), dim=1)
 
 
+def _size(value: int, device: torch.device) -> torch.Tensor:
+    """A size as a float64 scalar tensor: under ``torch.export`` a symbolic size stays symbolic
+    in tensor arithmetic, while Python arithmetic on it (or ``torch.linspace(..., steps=size)``)
+    fixes it to the example's value and the exported head would take one resolution only."""
+    return torch.full((), value, dtype=torch.float64, device=device)
+
+
+def _symmetric_range(half_span: torch.Tensor, count: int, device: torch.device) -> torch.Tensor:
+    """``linspace(-half_span, half_span, count)`` in float64 (``count`` may be symbolic)."""
+    step = 2 * half_span / torch.clamp(_size(count, device) - 1, min=1)
+    return torch.arange(count, dtype=torch.float64, device=device) * step - half_span
+
+
 def uv_embedding(
     height: int,
     width: int,
     channels: int,
     *,
-    aspect_ratio: float,
+    image_size: tuple[int, int],
     dtype: torch.dtype,
     device: torch.device,
     omega_0: float = 100.0,
@@ -90,16 +101,20 @@ def uv_embedding(
     """Sinusoidal embedding [channels, height, width] of normalised UV coordinates.
 
     u spans ``±a/sqrt(a²+1) * (width-1)/width`` and v ``±1/sqrt(a²+1) * (height-1)/height`` with
-    ``a = aspect_ratio`` (the image's W/H, whatever the map's own size), so the embedding marks
-    the same image location at every pyramid level. Channels: [sin u, cos u, sin v, cos v], each
-    ``channels / 4`` wide. The grid is built in ``dtype`` (as the reference does), the sinusoids
-    in fp32.
+    ``a`` the image's W/H (``image_size`` = (H, W), whatever the map's own size), so the
+    embedding marks the same image location at every pyramid level. Channels: [sin u, cos u,
+    sin v, cos v], each ``channels / 4`` wide. The grid is computed in float64 and rounded to
+    ``dtype`` (the reference builds it with ``linspace`` in ``dtype``: equal to ~1 ulp), the
+    sinusoids in fp32.
     """
-    diagonal = math.sqrt(aspect_ratio**2 + 1.0)
-    span_u = aspect_ratio / diagonal * (width - 1) / width
-    span_v = 1.0 / diagonal * (height - 1) / height
-    u = torch.linspace(-span_u, span_u, width, dtype=dtype, device=device)
-    v = torch.linspace(-span_v, span_v, height, dtype=dtype, device=device)
+    image_h, image_w = (_size(side, device) for side in image_size)
+    map_h, map_w = _size(height, device), _size(width, device)
+    aspect = image_w / image_h
+    diagonal = torch.sqrt(aspect * aspect + 1.0)
+    span_u = aspect / diagonal * (map_w - 1) / map_w
+    span_v = 1.0 / diagonal * (map_h - 1) / map_h
+    u = _symmetric_range(span_u, width, device).to(dtype)
+    v = _symmetric_range(span_v, height, device).to(dtype)
     grid_v, grid_u = torch.meshgrid(v, u, indexing="ij")  # [height, width] each
     embedding = torch.cat(
         (_sincos(grid_u, channels // 2, omega_0), _sincos(grid_v, channels // 2, omega_0)), dim=1
@@ -111,12 +126,11 @@ def add_uv_embedding(
     x: torch.Tensor, image_size: tuple[int, int], ratio: float = 0.1
 ) -> torch.Tensor:
     """``x + ratio * uv_embedding`` for a feature map [B, C, h, w] of an image (H, W)."""
-    height, width = image_size
     embedding = uv_embedding(
         x.shape[-2],
         x.shape[-1],
         x.shape[1],
-        aspect_ratio=width / height,
+        image_size=image_size,
         dtype=x.dtype,
         device=x.device,
     )

@@ -141,7 +141,7 @@ class DualDPT(nn.Module):
         full-resolution maps; each view's result does not depend on the chunking.
         """
         chunks = [
-            self._forward_views(
+            self.forward_views(
                 [f[start : start + views_per_chunk] for f in features], image_size, with_rays
             )
             for start in range(0, features[0].shape[0], views_per_chunk)
@@ -160,9 +160,10 @@ class DualDPT(nn.Module):
             ray_conf=joined("ray_conf"),
         )
 
-    def _forward_views(
+    def forward_views(
         self, features: list[torch.Tensor], image_size: tuple[int, int], with_rays: bool
     ) -> DualDPTOutput:
+        """``forward`` on all the views at once (no chunking; the exported depth graph runs this)."""
         height, width = image_size
         grid_h, grid_w = height // self.patch_size, width // self.patch_size
         pyramid = []

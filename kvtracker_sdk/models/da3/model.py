@@ -141,7 +141,7 @@ class DepthAnything3(nn.Module):
                     extrinsics, intrinsics, (imgs.shape[-2], imgs.shape[-1])
                 )
         features = self.backbone(
-            self._normalise(imgs),
+            self.normalise(imgs),
             strategy=ref_view_strategy,
             camera_tokens=camera_tokens,
             global_attn_mask=global_attn_mask,
@@ -152,7 +152,7 @@ class DepthAnything3(nn.Module):
         self, imgs: torch.Tensor, *, heads: HeadSet = HeadSet.ALL, with_rays: bool = False
     ) -> DA3MapOutput:
         """Keyframes [B, N, 3, H, W] (reference = view 0) -> outputs and every global block's K/V."""
-        features, keys, values = self.backbone.forward_map(self._normalise(imgs))
+        features, keys, values = self.backbone.forward_map(self.normalise(imgs))
         output = self._heads(features, (imgs.shape[-2], imgs.shape[-1]), heads, with_rays)
         tokens = self.tokens_per_frame(imgs.shape[-2], imgs.shape[-1])
         return DA3MapOutput(output, keys, values, tokens_per_frame=tokens)
@@ -170,7 +170,7 @@ class DepthAnything3(nn.Module):
             raise ImageShapeError(
                 f"tracking expects views [F, 3, H, W], got shape {tuple(imgs.shape)}"
             )
-        features = self.backbone.forward_track(self._normalise(imgs.unsqueeze(0))[0], cache)
+        features = self.backbone.forward_track(self.normalise(imgs.unsqueeze(0))[0], cache)
         # [1, F, ...] -> [F, 1, ...]: the views are independent sequences
         per_view = BackboneOutput(
             features=[feature.transpose(0, 1) for feature in features.features],
@@ -180,7 +180,7 @@ class DepthAnything3(nn.Module):
         return self._heads(per_view, (imgs.shape[-2], imgs.shape[-1]), heads, with_rays)
 
     # ------------------------------------------------------------------ stages
-    def _normalise(self, imgs: torch.Tensor) -> torch.Tensor:
+    def normalise(self, imgs: torch.Tensor) -> torch.Tensor:
         """[B, N, 3, H, W] in [0, 1] -> ImageNet-normalised, in the backbone's dtype."""
         if imgs.dim() != 5 or imgs.shape[2] != 3:
             raise ImageShapeError(f"expected images [B, N, 3, H, W], got shape {tuple(imgs.shape)}")
