@@ -11,6 +11,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from kvtracker_sdk.models.layers.symbolic_sizes import size_tensor
+
 __all__ = ["ChannelsLast", "FusionBlock", "ResidualConvUnit", "add_uv_embedding", "uv_embedding"]
 
 
@@ -75,16 +77,10 @@ def _sincos(positions: torch.Tensor, width: int, omega_0: float) -> torch.Tensor
     return torch.cat((angles.sin(), angles.cos()), dim=1)
 
 
-def _size(value: int, device: torch.device) -> torch.Tensor:
-    """A size as a float64 scalar tensor: under ``torch.export`` a symbolic size stays symbolic
-    in tensor arithmetic, while Python arithmetic on it (or ``torch.linspace(..., steps=size)``)
-    fixes it to the example's value and the exported head would take one resolution only."""
-    return torch.full((), value, dtype=torch.float64, device=device)
-
-
 def _symmetric_range(half_span: torch.Tensor, count: int, device: torch.device) -> torch.Tensor:
-    """``linspace(-half_span, half_span, count)`` in float64 (``count`` may be symbolic)."""
-    step = 2 * half_span / torch.clamp(_size(count, device) - 1, min=1)
+    """``linspace(-half_span, half_span, count)`` in float64 (``count`` may be symbolic: see
+    ``models/layers/symbolic_sizes.py``)."""
+    step = 2 * half_span / torch.clamp(size_tensor(count, device) - 1, min=1)
     return torch.arange(count, dtype=torch.float64, device=device) * step - half_span
 
 
@@ -107,8 +103,8 @@ def uv_embedding(
     ``dtype`` (the reference builds it with ``linspace`` in ``dtype``: equal to ~1 ulp), the
     sinusoids in fp32.
     """
-    image_h, image_w = (_size(side, device) for side in image_size)
-    map_h, map_w = _size(height, device), _size(width, device)
+    image_h, image_w = (size_tensor(side, device) for side in image_size)
+    map_h, map_w = size_tensor(height, device), size_tensor(width, device)
     aspect = image_w / image_h
     diagonal = torch.sqrt(aspect * aspect + 1.0)
     span_u = aspect / diagonal * (map_w - 1) / map_w

@@ -32,6 +32,7 @@ from torch import nn
 
 from kvtracker_sdk.models.layers.block import Block
 from kvtracker_sdk.models.layers.patch_embed import PatchEmbed
+from kvtracker_sdk.models.layers.symbolic_sizes import bicubic_resize_matrix, size_tensor
 
 __all__ = ["DinoViT"]
 
@@ -102,8 +103,13 @@ class DinoViT(nn.Module):
         """[1, 1 + grid_h*grid_w, dim]: cls position, then the grid resized to (grid_h, grid_w).
 
         The resize runs in fp32 (as DINOv2 does) and the result is cast to the parameter dtype.
+        While ``torch.export`` traces (the ONNX exporter), the resize without antialias runs as
+        two interpolation matrices built from the (symbolic) grid size, the same function to
+        ~1e-5: ``F.interpolate`` would fix the grid size to the example's.
         """
         side = self.pos_embed_grid
+        if torch.compiler.is_exporting() and not self.interpolate_antialias:
+            return self._exportable_pos_embed(grid_h, grid_w)
         if (grid_h, grid_w) == (side, side):
             return self.pos_embed
         table = self.pos_embed.float()
@@ -117,6 +123,26 @@ class DinoViT(nn.Module):
             grid = F.interpolate(grid, size=(grid_h, grid_w), mode="bicubic", antialias=self.interpolate_antialias)
         grid = grid.permute(0, 2, 3, 1).reshape(1, grid_h * grid_w, -1)  # row-major over (h, w)
         return torch.cat((cls_pos, grid), dim=1).to(self.pos_embed.dtype)
+
+    def _exportable_pos_embed(self, grid_h: int, grid_w: int) -> torch.Tensor:
+        """``interpolate_pos_embed`` without antialias, as ``M_h @ grid @ M_wᵀ`` (see
+        ``symbolic_sizes.py``); at the native grid size (both sides) the matrices are the
+        identity, as the eager path returns the table unresized."""
+        side = self.pos_embed_grid
+        table = self.pos_embed.float()
+        cls_pos, grid = table[0, :1], table[0, 1:].reshape(side, side, -1)
+        rows, cols = size_tensor(grid_h, table.device), size_tensor(grid_w, table.device)
+        native = (rows == side) & (cols == side)
+
+        def matrix(size: int, target: torch.Tensor) -> torch.Tensor:
+            # PyTorch reads the source at steps of 1 / scale_factor, or in / out without one
+            step = side / (target + self.interpolate_offset)
+            step = torch.where(native, torch.ones_like(step), step)
+            return bicubic_resize_matrix(size, side, step, table.device)
+
+        resized = torch.einsum("hi,ijc,wj->hwc", matrix(grid_h, rows), grid, matrix(grid_w, cols))
+        patches = resized.reshape(grid_h * grid_w, -1)
+        return torch.cat((cls_pos, patches), dim=0).unsqueeze(0).to(self.pos_embed.dtype)
 
     def prepare_tokens(self, images: torch.Tensor) -> torch.Tensor:
         """Normalised images [B, 3, H, W] -> tokens [B, 1 + R + h*w, dim] (cls, registers, patches)."""
