@@ -1,12 +1,13 @@
 """ONNX Runtime vs PyTorch eager: the cached tracking step on CPU, per number of keyframes N.
 
-For each config (``tracking_vs_recompute.PRESETS``: ``mid``, ``large``, ``tiny``) the same
-random-weight Pi3 runs as ``TorchBackend`` (fp32) and, exported once (reused from
+For each config — Pi3 (``tracking_vs_recompute.PRESETS``: ``mid``, ``large``, ``tiny``) or
+Depth Anything 3 (``model_families.MODELS``: ``da3-small``, ``da3-base``, ``da3-tiny``) — the
+same random-weight network runs as ``TorchBackend`` (fp32) and, exported once (reused from
 ``--onnx-dir/<config>`` when its fingerprint matches), as ``OnnxBackend`` (fp32). With
 ``--int8`` the tracking graphs are also quantised with ONNX Runtime's dynamic int8 quantisation
 (int8 weights per channel, activations quantised at run time; VNNI/AMX kernels on x86) and
 timed through the same runner. One query frame is tracked against a cache of N random keyframes
-(``tracking_vs_recompute.random_cache``: the values do not change the work).
+(``model_families.random_cache``: the values do not change the work).
 
 Timing: the variants are timed in turn within each repeat (so a busy shared machine slows them
 alike); the table shows the best of ``--repeats`` on ``--clock``. PyTorch flushes denormals to
@@ -17,6 +18,7 @@ variant against PyTorch on the same cache is recorded (random weights: int8 accu
 weights needs the real checkpoint).
 
     python -m benchmarks.onnx_vs_torch --config mid large --keyframes 1 8 32 --threads 2 --int8
+    python -m benchmarks.onnx_vs_torch --config da3-small da3-base --keyframes 1 8 32 --int8
 
 Writes ``benchmarks/results/<name>.json`` (default ``onnx_vs_torch_<size>_<threads>thread``).
 """
@@ -37,16 +39,23 @@ from typing import Any
 import numpy as np
 import torch
 
-from benchmarks.tracking_vs_recompute import HEADS, PRESETS, build_model, random_cache
+from benchmarks import model_families
+from benchmarks.tracking_vs_recompute import HEADS, PRESETS, build_model
 from kvtracker_sdk.backends.onnx import OnnxBackend
-from kvtracker_sdk.backends.onnx_manifest import read_manifest
-from kvtracker_sdk.backends.onnx_runtime import Pi3OnnxRunner
+from kvtracker_sdk.backends.onnx_manifest import FAMILY_GRAPHS, read_manifest
+from kvtracker_sdk.backends.onnx_runtime import OnnxRunner
 from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.backends.torch_families import family_adapter
 from kvtracker_sdk.errors import ModelError
-from kvtracker_sdk.export_onnx import export_pi3
+from kvtracker_sdk.export_onnx import export_model
 
 RESULTS = Path(__file__).parent / "results"
-TRACKING_GRAPHS = ("encoder", "decoder_track", "head_camera", "head_conf")
+DA3_CONFIGS = sorted(name for name in model_families.MODELS if name.startswith("da3-"))
+
+
+def tracking_graphs(family: str) -> tuple[str, ...]:
+    """The graphs a tracking step runs (the quantised ones): no mapping decoder, no points."""
+    return tuple(g for g in FAMILY_GRAPHS[family] if g not in ("decoder_map", "head_points"))
 
 
 def ensure_export(backend: TorchBackend, model: torch.nn.Module, folder: Path) -> Path:
@@ -57,17 +66,17 @@ def ensure_export(backend: TorchBackend, model: torch.nn.Module, folder: Path) -
     except ModelError:
         pass
     print(f"exporting to {folder} ...", flush=True)
-    export_pi3(model, folder, overwrite=True)  # type: ignore[arg-type]
+    export_model(model, folder, overwrite=True)  # type: ignore[arg-type]
     return folder
 
 
 def quantize_graphs(folder: Path, target: Path) -> None:
-    """int8 dynamic quantisation of ``TRACKING_GRAPHS`` from ``folder`` into ``target``."""
+    """int8 dynamic quantisation of the tracking graphs from ``folder`` into ``target``."""
     import onnx
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     target.mkdir(exist_ok=True)
-    for graph in TRACKING_GRAPHS:
+    for graph in tracking_graphs(read_manifest(folder).family):
         if (target / f"{graph}.onnx").is_file():
             continue
         print(f"quantising {graph} to int8 ...", flush=True)
@@ -81,7 +90,7 @@ def quantize_graphs(folder: Path, target: Path) -> None:
         os.replace(partial, target / f"{graph}.onnx")  # its data file keeps the partial name
 
 
-def ensure_int8(folder: Path, threads: int) -> Pi3OnnxRunner:
+def ensure_int8(folder: Path, threads: int) -> OnnxRunner:
     """A runner over int8 quantisations of the tracking graphs, made once in ``<folder>-int8``.
 
     The quantiser holds a graph's fp32 weights several times over: it runs in a child process,
@@ -96,8 +105,8 @@ def ensure_int8(folder: Path, threads: int) -> Pi3OnnxRunner:
     if worker.exitcode != 0:
         raise RuntimeError(f"int8 quantisation failed (exit code {worker.exitcode})")
     manifest = read_manifest(folder)
-    subset = {name: manifest.graphs[name] for name in TRACKING_GRAPHS}
-    return Pi3OnnxRunner(target, manifest.model_copy(update={"graphs": subset}), threads=threads)
+    subset = {name: manifest.graphs[name] for name in tracking_graphs(manifest.family)}
+    return OnnxRunner(target, manifest.model_copy(update={"graphs": subset}), threads=threads)
 
 
 def time_variants(
@@ -119,8 +128,12 @@ def time_variants(
 
 def bench_config(name: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     """Rows (one per N and head set) for preset ``name``."""
-    model = build_model(PRESETS[name](), torch.float32)
-    torch_backend = TorchBackend(model, model_name=name)
+    if name in PRESETS:
+        model: torch.nn.Module = build_model(PRESETS[name](), torch.float32)
+    else:
+        model = model_families.build_model(name, torch.float32)
+    torch_backend = TorchBackend(model, model_name=name)  # type: ignore[arg-type]
+    layout = family_adapter(model).layout  # type: ignore[arg-type]
     folder = ensure_export(torch_backend, model, args.onnx_dir / name)
     int8 = ensure_int8(folder, args.threads) if args.int8 else None
     onnx_backend = OnnxBackend(folder, threads=args.threads)
@@ -129,7 +142,8 @@ def bench_config(name: str, args: argparse.Namespace) -> list[dict[str, Any]]:
     frame = np.ascontiguousarray(image.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0
     rows = []
     for keyframes in args.keyframes:
-        cache = random_cache(model, keyframes, model.tokens_per_frame(size, size))
+        tokens = model.tokens_per_frame(size, size)  # type: ignore[operator]
+        cache = model_families.random_cache(layout, torch.float32, keyframes, tokens)
         past = [tuple(b.numpy() for b in cache.buffers(i)) for i in range(cache.layout.num_layers)]
         for heads_name in args.heads:
             heads = HEADS[heads_name]
@@ -180,7 +194,9 @@ def markdown_table(result: dict[str, Any]) -> str:
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", choices=sorted(PRESETS), nargs="+", default=["mid", "large"])
+    parser.add_argument(
+        "--config", choices=sorted(PRESETS) + DA3_CONFIGS, nargs="+", default=["mid", "large"]
+    )
     parser.add_argument("--size", type=int, default=224, help="square side in px, multiple of 14")
     parser.add_argument("--keyframes", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--heads", choices=sorted(HEADS), nargs="+", default=["camera", "conf"])

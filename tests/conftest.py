@@ -64,6 +64,17 @@ def golden_onnx_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder
 
 
+@pytest.fixture(scope="session")
+def golden_da3_onnx_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The golden (reduced) DA3 weights exported to ONNX, once per session; ~50 s on 2 cores."""
+    dev_dependency("onnxruntime")
+    from kvtracker_sdk.export_onnx import export_onnx
+
+    folder = tmp_path_factory.mktemp("onnx") / "da3-golden"
+    export_onnx(folder, weights=shared_path("golden", "da3", "weights.safetensors"))
+    return folder
+
+
 @pytest.fixture(scope="session", autouse=True)
 def onnx_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """``OnnxBackend.from_pretrained(checkpoint)`` exports into a session folder, not ~/.cache."""

@@ -1,12 +1,13 @@
 """``OnnxBackend``: the ``Backend`` contract served by ONNX Runtime from an exported folder.
 
     backend = OnnxBackend("pi3-onnx/")                      # kvtracker export-onnx made the folder
-    backend = OnnxBackend("pi3-onnx/", device="cuda")       # with onnxruntime-gpu installed
+    backend = OnnxBackend("da3-small-onnx/", device="cuda") # with onnxruntime-gpu installed
     backend = OnnxBackend.from_pretrained("model.safetensors")   # exported once, then reused
     mapped = backend.map(keyframes)                         # uint8 [N, H, W, 3] at model resolution
     result = backend.track(frame, mapped.cache, heads=HeadSet.CAMERA)
 
-It computes the same function as ``TorchBackend`` with the same weights: ``info.fingerprint``
+It serves both families (the manifest names the export's: ``pi3`` or ``da3``) and computes the
+same function as ``TorchBackend`` with the same weights: ``info.fingerprint``
 and ``info.layout`` are equal (read from the export's manifest), so a tracker swaps between the
 two live (``Tracker.set_backend``) and maps saved by one load in the other. The cache is a
 float32 ``KVCache`` on the CPU (where ONNX Runtime reads its inputs, whatever the provider):
@@ -27,21 +28,21 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.special import expit
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
+from kvtracker_sdk.backends.onnx_families import HeadOutputs
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
-from kvtracker_sdk.backends.onnx_runtime import HeadOutputs, Pi3OnnxRunner, providers_for
+from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, providers_for
 from kvtracker_sdk.cache.kv_cache import KVCache
-from kvtracker_sdk.errors import ImageShapeError, ModelError, StateError
+from kvtracker_sdk.errors import ImageShapeError, StateError
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["OnnxBackend"]
 
 
 class OnnxBackend:
-    """Pi3 on ONNX Runtime; implements ``kvtracker_sdk.backends.base.Backend``.
+    """Pi3 or Depth Anything 3 on ONNX Runtime; implements ``kvtracker_sdk.backends.base.Backend``.
 
     ``folder``: an export (``kvtracker export-onnx``). ``device``: "cpu" (default), "cuda[:N]",
     "coreml" or "directml", where the installed onnxruntime provides it; ``providers`` (names or
@@ -59,9 +60,7 @@ class OnnxBackend:
     ) -> None:
         self.folder = Path(folder)
         self.manifest: OnnxManifest = read_manifest(self.folder)
-        if self.manifest.family != "pi3":
-            raise ModelError(f"{folder}: OnnxBackend serves pi3 exports, not {self.manifest.family}")
-        self._runner: Pi3OnnxRunner | None = Pi3OnnxRunner(
+        self._runner: OnnxRunner | None = OnnxRunner(
             self.folder, self.manifest, providers=providers_for(device, providers), threads=threads
         )
         # the cache stays on the CPU whatever the provider: ORT reads host memory
@@ -79,7 +78,8 @@ class OnnxBackend:
         threads: int | None = None,
         cache_dir: str | os.PathLike[str] | None = None,
     ) -> OnnxBackend:
-        """An export folder, or a Pi3 checkpoint (file, folder or hub id) exported on first use.
+        """An export folder, or a checkpoint of either family (model name such as ``da3-small``,
+        file, folder or hub id) exported on first use.
 
         A checkpoint is exported once into ``cache_dir`` and reused afterwards
         (``kvtracker_sdk.export_onnx.reuse``; that first call needs PyTorch and the ``[onnx]``
@@ -111,10 +111,10 @@ class OnnxBackend:
             tokens_per_frame=self._info.tokens_per_frame(*images.shape[1:3]),
             keyframe_ids=range(images.shape[0]),
         )
-        assert outputs.conf_logits is not None and outputs.local_points is not None  # all heads
+        assert outputs.confidence is not None and outputs.local_points is not None  # all heads
         return MapResult(
             poses=outputs.poses,
-            confidence=expit(outputs.conf_logits),
+            confidence=outputs.confidence,
             local_points=outputs.local_points,
             cache=cache,
             timings_ms={"map": (time.perf_counter() - start) * 1e3},
@@ -149,7 +149,7 @@ class OnnxBackend:
         self._runner = None
 
     # ------------------------------------------------------------------ helpers
-    def _live_runner(self) -> Pi3OnnxRunner:
+    def _live_runner(self) -> OnnxRunner:
         if self._runner is None:
             raise StateError("this OnnxBackend is closed")
         return self._runner
@@ -161,7 +161,7 @@ class OnnxBackend:
 
     @staticmethod
     def _track_result(outputs: HeadOutputs, timings: dict[str, float]) -> TrackResult:
-        confidence_map = None if outputs.conf_logits is None else expit(outputs.conf_logits[0])
+        confidence_map = None if outputs.confidence is None else outputs.confidence[0]
         return TrackResult(
             pose=outputs.poses[0],
             confidence=None if confidence_map is None else float(confidence_map.mean()),

@@ -19,6 +19,21 @@ cached layers; float32 unless noted)::
     head_conf       hidden_registers, hidden_patches            -> conf_logits [F, H, W]
     head_points     hidden_registers, hidden_patches            -> local_points [F, H, W, 3] (camera frame)
 
+Graphs of a Depth Anything 3 export (C the backbone width, T = 1 + h*w)::
+
+    encoder         images [F, 3, H, W] in [0, 1]             -> patch_tokens [F, h, w, C]
+    decoder_map     patch_tokens [N, h, w, C]                   -> camera_tokens [N, 2C],
+                                                                   features.{0..3} [N, h, w, 2C],
+                                                                   present.{i}.key/value [1, heads, N*T, head_dim]
+    decoder_track   patch_tokens [1, h, w, C], past_length, past_key_values.{i}.key/value
+                                                                -> camera_tokens, features.{0..3} (F = 1)
+    head_camera     camera_tokens                               -> pose_enc [F, 9] (t, quaternion xyzw, fov_h, fov_w)
+    head_depth      features.{0..3}                             -> depth [F, H, W], depth_conf [F, H, W] (>= 1)
+
+Keyframe 0 of a DA3 mapping pass carries the reference camera token (the world frame); the
+tracking query carries the non-reference one. Each head graph's inputs are named after the
+decoder outputs it reads, so a runtime feeds them by name whatever the family.
+
 ``{i}`` is the ordinal of a cached (global) layer, as in ``KVCache.keys(i)``. The tracking
 decoder reads tokens ``[:past_length]`` of its past inputs and ignores the rest: a ``KVCache``
 buffer (cached tokens followed by scratch capacity) is passed as it is, without a copy; a compact
@@ -41,7 +56,7 @@ from kvtracker_sdk.errors import ModelError
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
-    "GRAPH_NAMES",
+    "FAMILY_GRAPHS",
     "MANIFEST_NAME",
     "WEIGHTS_NAME",
     "GraphSpec",
@@ -58,14 +73,11 @@ FORMAT_NAME = "kvtracker-onnx"
 FORMAT_VERSION = 1  # bump on any change a version-1 reader would misread
 MANIFEST_NAME = "manifest.json"
 WEIGHTS_NAME = "weights.bin"
-GRAPH_NAMES = (
-    "encoder",
-    "decoder_map",
-    "decoder_track",
-    "head_camera",
-    "head_conf",
-    "head_points",
-)
+# graphs of an export, per family (``manifest.family``), in the order they run
+FAMILY_GRAPHS: dict[str, tuple[str, ...]] = {
+    "pi3": ("encoder", "decoder_map", "decoder_track", "head_camera", "head_conf", "head_points"),
+    "da3": ("encoder", "decoder_map", "decoder_track", "head_camera", "head_depth"),
+}
 
 
 def past_key_name(layer: int) -> str:
@@ -109,9 +121,9 @@ class OnnxManifest(_Frozen):
     format_version: int = FORMAT_VERSION
     sdk_version: str
     created_utc: str
-    family: str  # "pi3"
-    model: str  # "pi3" for the released architecture, "pi3-custom" otherwise
-    config: dict[str, Any]  # the architecture (Pi3Config.model_dump())
+    family: str  # "pi3" or "da3" (a key of FAMILY_GRAPHS)
+    model: str  # "pi3", "da3-small", ... for released architectures, "<family>-custom" otherwise
+    config: dict[str, Any]  # the architecture (Pi3Config / DA3Config .model_dump())
     config_hash: str
     weights_fingerprint: str
     fingerprint: str  # BackendInfo.fingerprint of these weights: equal to TorchBackend's
@@ -157,7 +169,8 @@ class OnnxManifest(_Frozen):
 def read_manifest(folder: str | Path) -> OnnxManifest:
     """Read and validate ``folder/manifest.json``; ``ModelError`` says what is wrong.
 
-    Checks the format name and version, that every graph and the weights file exist, and that
+    Checks the format name and version, the family, that every graph of the family and the
+    weights file exist, and that
     the recorded fingerprint is the one the recorded identity hashes to (a hand-edited or
     mismatched manifest would otherwise let caches cross models).
     """
@@ -183,7 +196,12 @@ def read_manifest(folder: str | Path) -> OnnxManifest:
         manifest = OnnxManifest.model_validate(raw)
     except ValidationError as exc:
         raise ModelError(f"{path} is malformed: {exc}") from exc
-    missing = sorted(name for name in GRAPH_NAMES if name not in manifest.graphs)
+    if manifest.family not in FAMILY_GRAPHS:
+        raise ModelError(
+            f"{path} is an export of family {manifest.family!r}; this SDK serves "
+            f"{sorted(FAMILY_GRAPHS)}"
+        )
+    missing = sorted(set(FAMILY_GRAPHS[manifest.family]) - set(manifest.graphs))
     if missing:
         raise ModelError(f"{path} lists no graph for {missing}")
     files = [manifest.weights_file, *(spec.file for spec in manifest.graphs.values())]

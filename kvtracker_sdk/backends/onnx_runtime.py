@@ -1,8 +1,10 @@
-"""ONNX Runtime sessions of an export folder, chained into Pi3's mapping and tracking passes.
+"""ONNX Runtime sessions of an export folder, chained into mapping and tracking passes.
 
-``Pi3OnnxRunner`` speaks numpy: float32 images in [0, 1], K/V arrays, raw head outputs. It
-knows nothing of ``KVCache`` or uint8 frames (that is ``OnnxBackend``'s job) so that the
-exporter can run it on its check inputs too.
+``OnnxRunner`` speaks numpy: float32 images in [0, 1], K/V arrays, per-frame outputs in the
+SDK's conventions. It knows nothing of ``KVCache`` or uint8 frames (that is ``OnnxBackend``'s
+job) so that the exporter can run it on its check inputs too. It serves every family: the
+decoders' outputs other than K/V are the heads' inputs, fed to the head graphs by name, and the
+family's ``OnnxHeads`` (``onnx_families.py``) picks the head graphs and converts their outputs.
 
 Speed choices (``session_options``): full graph optimisation (``ORT_ENABLE_ALL``: fusions of
 LayerNorm, GELU, MatMul+Add...), the CPU memory arena and memory patterns (buffers are reused
@@ -10,43 +12,29 @@ from one step to the next), sequential execution with ``threads`` intra-op threa
 transformer block at a time: there is no parallelism between nodes worth a second pool).
 Inputs are passed as numpy arrays, which ONNX Runtime reads in place when they are C-contiguous
 (a 1.2 GB cache buffer costs microseconds to bind), so no I/O binding is needed on CPU.
-
-Only the camera head's last step runs outside the graphs: ``camera_poses`` normalises the rows
-of the raw 3x3 and projects it onto SO(3) with an SVD in float64 numpy — the function of the
-PyTorch head's ``rotation_from_matrix9`` (equal to 1e-12 in float64; the PyTorch backend runs it
-in float32, whose rounding is ~1e-6).
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.onnx_manifest import OnnxManifest, past_key_name, past_value_name
+from kvtracker_sdk.backends.onnx_families import HeadOutputs, onnx_heads
+from kvtracker_sdk.backends.onnx_manifest import (
+    OnnxManifest,
+    past_key_name,
+    past_value_name,
+    present_key_name,
+    present_value_name,
+)
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
-from kvtracker_sdk.geometry.se3 import project_to_rotation
 from kvtracker_sdk.types import HeadSet
 
-__all__ = [
-    "HeadOutputs",
-    "Pi3OnnxRunner",
-    "camera_poses",
-    "import_onnxruntime",
-    "providers_for",
-    "session_options",
-]
-
-_HEAD_GRAPHS = {
-    HeadSet.CAMERA: ("head_camera",),
-    HeadSet.CONFIDENCE: ("head_camera", "head_conf"),
-    HeadSet.ALL: ("head_camera", "head_conf", "head_points"),
-}
-
+__all__ = ["OnnxRunner", "import_onnxruntime", "providers_for", "session_options"]
 
 def import_onnxruntime() -> Any:
     """The ``onnxruntime`` module, or ``MissingDependencyError`` naming the ``[onnx]`` extra."""
@@ -103,37 +91,11 @@ def session_options(threads: int | None = None) -> Any:
     options.inter_op_num_threads = 1
     options.enable_cpu_mem_arena = True
     options.enable_mem_pattern = True
-    options.log_severity_level = 3  # errors only: the library prints nothing by default
+    options.log_severity_level = 4  # fatal only: failures reach the caller as BackendError
     return options
 
 
-def camera_poses(rotation_raw: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Camera-to-world poses [F, 4, 4] float64 from the camera head's raw outputs.
-
-    ``rotation_raw`` [F, 9] is a row-major 3x3 per frame: its rows are normalised (as
-    ``F.normalize``, eps 1e-12), then it is replaced by the nearest rotation with det = +1
-    (SVD). ``translation`` [F, 3].
-    """
-    matrices = np.asarray(rotation_raw, dtype=np.float64).reshape(-1, 3, 3)
-    norms = np.linalg.norm(matrices, axis=-1, keepdims=True)
-    matrices = matrices / np.maximum(norms, 1e-12)
-    poses = np.tile(np.eye(4), (matrices.shape[0], 1, 1))
-    for frame, matrix in enumerate(matrices):
-        poses[frame, :3, :3] = project_to_rotation(matrix)
-    poses[:, :3, 3] = np.asarray(translation, dtype=np.float64).reshape(-1, 3)
-    return poses
-
-
-@dataclass(frozen=True)
-class HeadOutputs:
-    """Per-frame outputs of the head graphs (F frames); unrequested heads are None."""
-
-    poses: np.ndarray  # [F, 4, 4] float64 camera-to-world, OpenCV axes
-    conf_logits: np.ndarray | None = None  # [F, H, W] float32 (sigmoid -> confidence)
-    local_points: np.ndarray | None = None  # [F, H, W, 3] float32, camera frame
-
-
-class Pi3OnnxRunner:
+class OnnxRunner:
     """One ONNX Runtime session per graph of an export; mapping and tracking passes in numpy."""
 
     def __init__(
@@ -148,6 +110,7 @@ class Pi3OnnxRunner:
         folder = Path(folder)
         self.manifest = manifest
         self.providers = providers_for("cpu", providers)
+        self._heads = onnx_heads(manifest.family)
         options = session_options(threads)
         try:
             self._sessions = {
@@ -161,6 +124,9 @@ class Pi3OnnxRunner:
         self._outputs = {
             name: [spec.name for spec in graph.outputs] for name, graph in manifest.graphs.items()
         }
+        self._inputs = {
+            name: [spec.name for spec in graph.inputs] for name, graph in manifest.graphs.items()
+        }
         self.num_layers = manifest.cache_layout.num_layers
 
     @property
@@ -168,26 +134,24 @@ class Pi3OnnxRunner:
         """Execution providers the tracking decoder actually runs on, in priority order."""
         return tuple(self._sessions["decoder_track"].get_providers())
 
-    def _run(self, graph: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    def _run(self, graph: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         try:
             outputs: list[np.ndarray] = self._sessions[graph].run(self._outputs[graph], feeds)
         except Exception as exc:  # onnxruntime's exceptions are not part of our API
             raise BackendError(f"ONNX Runtime failed in graph {graph!r}: {exc}") from exc
-        return outputs
+        return dict(zip(self._outputs[graph], outputs, strict=True))
 
     def encode(self, images: np.ndarray) -> np.ndarray:
         """float32 [F, 3, H, W] in [0, 1] -> patch tokens [F, h, w, dim]."""
-        return self._run("encoder", {"images": images})[0]
+        return self._run("encoder", {"images": images})["patch_tokens"]
 
     def map(self, images: np.ndarray) -> tuple[HeadOutputs, list[np.ndarray], list[np.ndarray]]:
         """Full attention over keyframes float32 [N, 3, H, W] in [0, 1]: all heads, and per
         cached layer K and V [1, heads, N*T, head_dim]."""
-        patch_tokens = self.encode(images)
-        hidden_registers, hidden_patches, *kv = self._run(
-            "decoder_map", {"patch_tokens": patch_tokens}
-        )
-        outputs = self.heads(hidden_registers, hidden_patches, HeadSet.ALL)
-        return outputs, kv[0::2], kv[1::2]
+        decoded = self._run("decoder_map", {"patch_tokens": self.encode(images)})
+        keys = [decoded.pop(present_key_name(i)) for i in range(self.num_layers)]
+        values = [decoded.pop(present_value_name(i)) for i in range(self.num_layers)]
+        return self.heads(decoded, HeadSet.ALL, images.shape[-2:]), keys, values
 
     def track(
         self,
@@ -209,18 +173,15 @@ class Pi3OnnxRunner:
         for layer, (key, value) in enumerate(past):
             feeds[past_key_name(layer)] = key
             feeds[past_value_name(layer)] = value
-        hidden_registers, hidden_patches = self._run("decoder_track", feeds)
-        return self.heads(hidden_registers, hidden_patches, heads)
+        return self.heads(self._run("decoder_track", feeds), heads, image.shape[-2:])
 
     def heads(
-        self, hidden_registers: np.ndarray, hidden_patches: np.ndarray, heads: HeadSet
+        self, decoded: dict[str, np.ndarray], heads: HeadSet, image_size: Sequence[int]
     ) -> HeadOutputs:
-        """Run the head graphs ``heads`` needs on the decoder's hidden state."""
-        feeds = {"hidden_registers": hidden_registers, "hidden_patches": hidden_patches}
-        outputs = {name: self._run(name, feeds) for name in _HEAD_GRAPHS[heads]}
-        rotation_raw, translation = outputs["head_camera"]
-        return HeadOutputs(
-            poses=camera_poses(rotation_raw, translation),
-            conf_logits=outputs["head_conf"][0] if "head_conf" in outputs else None,
-            local_points=outputs["head_points"][0] if "head_points" in outputs else None,
-        )
+        """Run the head graphs ``heads`` needs on the decoder's outputs (fed by name), converted
+        to the SDK's conventions for images of ``image_size`` (H, W)."""
+        outputs: dict[str, np.ndarray] = {}
+        for graph in self._heads.graphs(heads):
+            outputs.update(self._run(graph, {name: decoded[name] for name in self._inputs[graph]}))
+        height, width = image_size
+        return self._heads.convert(outputs, heads, (int(height), int(width)))

@@ -47,6 +47,7 @@ from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_we
 from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
 from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
 from kvtracker_sdk.models.registry import load_model
+from kvtracker_sdk.models.registry import model_name as architecture_name
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["TorchBackend"]
@@ -80,8 +81,8 @@ def _accelerations(device: torch.device) -> tuple[str, ...]:
 class TorchBackend:
     """Pi3 or Depth Anything 3 on PyTorch; implements ``kvtracker_sdk.backends.base.Backend``.
 
-    ``model_name`` defaults to ``"<family>-custom"``; ``from_pretrained`` names the official
-    architectures (``"pi3"``, ``"da3-small"``, ...).
+    ``model_name`` defaults to the architecture's name (``"pi3"``, ``"da3-small"``, ... or
+    ``"<family>-custom"``; ``models.registry.model_name``).
     """
 
     def __init__(
@@ -103,7 +104,7 @@ class TorchBackend:
         self._layout = family.layout
         self._info = BackendInfo(
             backend="torch",
-            model=model_name or f"{family.family}-custom",
+            model=model_name or architecture_name(model),
             family=family.family,
             config_hash=model.config.config_hash,
             weights_fingerprint=fingerprint,

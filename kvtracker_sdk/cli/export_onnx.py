@@ -1,7 +1,9 @@
 """``kvtracker export-onnx --out DIR``: export a checkpoint to ONNX graphs for ``--backend onnx``.
 
     kvtracker export-onnx --weights model.safetensors --out pi3-onnx/
+    kvtracker export-onnx --weights da3-small --out da3-small-onnx/           # a model name
     kvtracker export-onnx --random-weights --config large --out pi3-random/   # no checkpoint
+    kvtracker export-onnx --random-weights --config da3-small --out da3-random/
     kvtracker track video.mp4 --backend onnx --weights pi3-onnx/
 
 Writes the graphs, one shared ``weights.bin`` and ``manifest.json`` (see
@@ -24,6 +26,7 @@ from kvtracker_sdk.errors import ConfigError
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
+    from kvtracker_sdk.models.da3 import DA3Config
     from kvtracker_sdk.models.pi3 import Pi3Config
 
 __all__ = ["export_onnx_command", "register"]
@@ -37,21 +40,35 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(height), int(width)
 
 
-def load_config(text: str) -> Pi3Config:
-    """``large`` (the released architecture) or a JSON file holding a ``Pi3Config``."""
+def load_config(text: str) -> Pi3Config | DA3Config:
+    """An architecture: ``large`` / ``pi3`` (the released Pi3), ``da3-small`` ... ``da3-giant``,
+    or a JSON file holding a ``Pi3Config`` or a ``DA3Config``."""
     from pydantic import ValidationError
 
+    from kvtracker_sdk.models.da3 import DA3Config
     from kvtracker_sdk.models.pi3 import Pi3Config
 
-    if text == "large":
+    if text in ("large", "pi3"):
         return Pi3Config.large()
+    if text.startswith("da3-") and not Path(text).exists():
+        return DA3Config.preset(text.removeprefix("da3-"))
     path = Path(text)
     if not path.is_file():
-        raise ConfigError(f"--config is 'large' or a Pi3Config JSON file; {text!r} is neither")
+        raise ConfigError(
+            f"--config is 'large', a DA3 preset (da3-small, da3-base, da3-large, da3-giant) or a "
+            f"config JSON file; {text!r} is none of those"
+        )
     try:
-        return Pi3Config.model_validate_json(path.read_text())
-    except (OSError, ValidationError) as exc:
-        raise ConfigError(f"{path} is not a valid Pi3Config: {exc}") from exc
+        raw = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc}") from exc
+    errors = []
+    for kind in (Pi3Config, DA3Config):
+        try:
+            return kind.model_validate_json(raw)
+        except ValidationError as exc:
+            errors.append(f"as a {kind.__name__}: {exc}")
+    raise ConfigError(f"{path} is neither a valid Pi3Config nor a DA3Config ({'; '.join(errors)})")
 
 
 def summary(manifest: OnnxManifest, out_dir: Path) -> str:
@@ -78,9 +95,11 @@ def export_onnx_command(
         "--out", "-o", help="Folder to create (graphs, weights.bin, manifest.json).",
         show_default=False)],
     weights: Annotated[str, typer.Option(
-        help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
+        help="Checkpoint: a model name (pi3, da3-small, ...), a .safetensors file, a folder "
+             "holding one, or a hub id.")] = DEFAULT_WEIGHTS,
     config: Annotated[str | None, typer.Option(
-        help="'large' or a Pi3Config JSON file. [default: inferred from the checkpoint]")] = None,
+        help="'large' (Pi3), a DA3 preset such as 'da3-small', or a config JSON file. "
+             "[default: inferred from the checkpoint]")] = None,
     random_weights: Annotated[bool, typer.Option(
         "--random-weights", help="No checkpoint: random weights of --config (tests, benchmarks).")] = False,
     seed: Annotated[int, typer.Option(help="Seed of --random-weights.")] = 0,
@@ -91,7 +110,7 @@ def export_onnx_command(
         "--overwrite", help="Replace --out if it exists (only once the new export is complete).")] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON.")] = False,
 ) -> None:
-    """Export a Pi3 checkpoint to ONNX graphs that the onnx backend serves."""
+    """Export a Pi3 or Depth Anything 3 checkpoint to ONNX graphs that the onnx backend serves."""
     from kvtracker_sdk.export_onnx import export_onnx
 
     state: CliState = ctx.find_root().obj

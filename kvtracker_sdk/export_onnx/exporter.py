@@ -1,16 +1,20 @@
-"""Export Pi3 to a folder of ONNX graphs + ``manifest.json`` that ``OnnxBackend`` serves.
+"""Export Pi3 or Depth Anything 3 to a folder of ONNX graphs + ``manifest.json`` that
+``OnnxBackend`` serves.
 
     from kvtracker_sdk.export_onnx import export_onnx
     manifest = export_onnx("pi3-onnx/", weights="model.safetensors")      # or a hub id / folder
+    manifest = export_onnx("da3-onnx/", weights="da3-small")              # a model name
     manifest = export_onnx("tiny-onnx/", config=Pi3Config(...), seed=0)   # random weights
 
-Steps: every graph of ``pi3_specs.pi3_graphs`` goes through the dynamo exporter
-(``torch.onnx.export(dynamo=True)``) with dynamic frames, patch grid and cache length; the
-weights move to one shared ``weights.bin`` (``external_data.py``); then ONNX Runtime runs a
-mapping pass and a tracking pass over the new graphs and the outputs are compared with PyTorch's
-``forward_map`` / ``forward_track`` on the same inputs — the tracking cache's scratch holds NaN,
-so a graph reading past the cached tokens fails. The largest differences go to the manifest
-(``check``); an export that differs by more than 1e-3 of the outputs' magnitude is refused.
+Steps: every graph of the family (``pi3_specs.py`` / ``da3_specs.py``) goes through the dynamo
+exporter (``torch.onnx.export(dynamo=True)``) with dynamic frames, patch grid and cache length;
+an export that fixed one of those sizes is refused. The weights move to one shared
+``weights.bin`` (``external_data.py``); then ONNX Runtime runs a mapping pass and a tracking
+pass over the new graphs and the outputs, in the SDK's conventions, are compared with
+``TorchBackend``'s (``backends/torch_families.py``) on the same inputs — the tracking cache's
+scratch holds NaN, so a graph reading past the cached tokens fails. The largest differences go
+to the manifest (``check``); an export that differs by more than 1e-3 of the outputs'
+magnitude is refused.
 
 The folder is written next to its destination and renamed into place at the end: an existing
 export is only replaced (``overwrite=True``) by a complete, checked one.
@@ -34,19 +38,24 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME, GraphSpec, OnnxManifest
-from kvtracker_sdk.backends.onnx_runtime import Pi3OnnxRunner, import_onnxruntime
-from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, import_onnxruntime
+from kvtracker_sdk.backends.torch_families import family_adapter
+from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError, ModelError
-from kvtracker_sdk.export_onnx.pi3_specs import GraphDef, dynamic_shapes, example_inputs, pi3_graphs
+from kvtracker_sdk.export_onnx.families import example_inputs, graphs_of
+from kvtracker_sdk.export_onnx.graph_def import GraphDef, dynamic_shapes
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config, load_pi3
+from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
+from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
+from kvtracker_sdk.models.registry import load_model, model_name
 from kvtracker_sdk.types import HeadSet
 
-__all__ = ["DEFAULT_CHECK_SIZE", "DEFAULT_OPSET", "export_onnx", "export_pi3"]
+__all__ = ["DEFAULT_CHECK_SIZE", "DEFAULT_OPSET", "export_model", "export_onnx"]
 
 DEFAULT_OPSET = 20  # ONNX Runtime >= 1.17; opset 23 maps SDPA to `Attention`, 1.5x slower on CPU here
 DEFAULT_CHECK_SIZE = (126, 168)  # (H, W) of the check: small, not square, a 9 x 12 patch grid
@@ -59,52 +68,56 @@ def export_onnx(
     out_dir: str | os.PathLike[str],
     *,
     weights: str | os.PathLike[str] | None = None,
-    config: Pi3Config | None = None,
+    config: Pi3Config | DA3Config | None = None,
     seed: int = 0,
     check_size: tuple[int, int] = DEFAULT_CHECK_SIZE,
     opset: int = DEFAULT_OPSET,
     overwrite: bool = False,
 ) -> OnnxManifest:
-    """Export a checkpoint (``.safetensors`` file, folder or hub id) or, with ``weights=None``,
-    a ``config`` with random weights (seeded; for tests and benchmarks) to ``out_dir``."""
+    """Export a checkpoint of either family (model name such as ``da3-small``, ``.safetensors``
+    file, folder or hub id) or, with ``weights=None``, a ``config`` with random weights (seeded;
+    for tests and benchmarks) to ``out_dir``."""
     _check_destination(Path(out_dir), overwrite)  # before minutes of loading and exporting
     if weights is not None:
-        loaded = load_pi3(weights, config=config)
-        model, fingerprint = loaded.model, loaded.fingerprint
+        loaded = load_model(weights, config=config)
+        model, fingerprint, name = loaded.model, loaded.fingerprint, loaded.name
     elif config is not None:
         torch.manual_seed(seed)
-        model = Pi3(config).eval()
-        fingerprint = hash_weights(model.state_dict())
+        model = (Pi3(config) if isinstance(config, Pi3Config) else DepthAnything3(config)).eval()
+        fingerprint, name = hash_weights(model.state_dict()), model_name(model)
     else:
         raise ConfigError("export_onnx needs weights (a checkpoint) or a config (random weights)")
-    return export_pi3(
+    return export_model(
         model,
         out_dir,
         weights_fingerprint=fingerprint,
+        name=name,
         check_size=check_size,
         opset=opset,
         overwrite=overwrite,
     )
 
 
-def export_pi3(
-    model: Pi3,
+def export_model(
+    model: Pi3 | DepthAnything3,
     out_dir: str | os.PathLike[str],
     *,
     weights_fingerprint: str | None = None,
+    name: str | None = None,
     check_size: tuple[int, int] = DEFAULT_CHECK_SIZE,
     opset: int = DEFAULT_OPSET,
     overwrite: bool = False,
 ) -> OnnxManifest:
-    """Export an fp32 ``Pi3`` (weights as loaded; not modified) to ``out_dir``; see the module doc.
+    """Export an fp32 ``Pi3`` or ``DepthAnything3`` (weights as loaded; not modified) to
+    ``out_dir``; see the module doc.
 
-    ``weights_fingerprint`` defaults to the hash of ``model.state_dict()`` — what
-    ``TorchBackend(model)`` reports, so both backends share ``info.fingerprint``.
+    ``weights_fingerprint`` defaults to the hash of ``model.state_dict()`` and ``name`` to the
+    architecture's (``models.registry.model_name``) — what ``TorchBackend(model)`` reports, so
+    both backends share ``info.fingerprint``.
     """
     _require_exporter()
     destination = Path(out_dir)
-    if not isinstance(model, Pi3):
-        raise ModelError(f"ONNX export supports Pi3 models, got {type(model).__name__}")
+    graphs = graphs_of(model)  # ModelError / ConfigError for what cannot be exported
     if model.compute_dtype != torch.float32:
         raise ConfigError(f"export an fp32 model, got {model.compute_dtype}")
     patch = model.config.patch_size
@@ -115,7 +128,15 @@ def export_pi3(
     staging = Path(tempfile.mkdtemp(prefix=f".{destination.name}.", dir=destination.parent))
     staging.chmod(0o755)  # mkdtemp makes it private; the export is an ordinary folder
     try:
-        manifest = _export_into(model.eval(), staging, weights_fingerprint, check_size, opset)
+        manifest = _export_into(
+            model.eval(),
+            graphs,
+            staging,
+            weights_fingerprint=weights_fingerprint or hash_weights(model.state_dict()),
+            name=name or model_name(model),
+            check_size=check_size,
+            opset=opset,
+        )
         _replace_folder(staging, destination)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -140,14 +161,21 @@ def _require_exporter() -> None:
 
 
 def _export_into(
-    model: Pi3, folder: Path, fingerprint: str | None, check_size: tuple[int, int], opset: int
+    model: Pi3 | DepthAnything3,
+    graphs: list[GraphDef],
+    folder: Path,
+    *,
+    weights_fingerprint: str,
+    name: str,
+    check_size: tuple[int, int],
+    opset: int,
 ) -> OnnxManifest:
     import onnx_ir as ir
 
     from kvtracker_sdk.export_onnx.external_data import SharedWeightsWriter
 
     config = model.config
-    graphs = pi3_graphs(config)
+    family = family_adapter(model)
     examples = example_inputs(model, check_size)
     specs: dict[str, GraphSpec] = {}
     with SharedWeightsWriter(folder, WEIGHTS_NAME) as weights:
@@ -161,20 +189,18 @@ def _export_into(
                 file=f"{graph.name}.onnx", inputs=graph.inputs, outputs=graph.outputs
             )
         weights_bytes = weights.size
-    decoder = model.decoder
-    layout = CacheLayout(decoder.global_block_indices, decoder.num_heads, decoder.head_dim)
     provisional = OnnxManifest(
         sdk_version=__version__,
         created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        family="pi3",
-        model="pi3" if config == Pi3Config.large() else "pi3-custom",
+        family=family.family,
+        model=name,
         config=config.model_dump(),
         config_hash=config.config_hash,
-        weights_fingerprint=fingerprint or hash_weights(model.state_dict()),
+        weights_fingerprint=weights_fingerprint,
         fingerprint="",
         patch_size=config.patch_size,
-        extra_tokens_per_frame=model.num_register_tokens,
-        layout=layout.to_dict(),
+        extra_tokens_per_frame=family.extra_tokens_per_frame,
+        layout=family.layout.to_dict(),
         opset=opset,
         check_resolution=check_size,
         weights_bytes=weights_bytes,
@@ -188,8 +214,13 @@ def _export_into(
     return manifest
 
 
-def _export_graph(model: Pi3, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
-    """One graph through the dynamo exporter; its dims renamed after ``graph``'s specs."""
+def _export_graph(model: nn.Module, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
+    """One graph through the dynamo exporter; its dims renamed after ``graph``'s specs.
+
+    ``ModelError`` if the exporter fixed a dim the specs declare dynamic (a Python computation
+    on a size, e.g. ``torch.linspace(..., steps=size)``, does that silently): the graph would
+    then serve one resolution or cache length only.
+    """
     import onnx_ir as ir
 
     with _quiet_exporter(), torch.no_grad():
@@ -215,6 +246,17 @@ def _export_graph(model: Pi3, graph: GraphDef, args: tuple[Any, ...], opset: int
     if [value.name for value in values] != [spec.name for spec in specs]:
         raise ModelError(f"graph {graph.name}: the exporter changed the inputs/outputs")
     for value, spec in zip(values, specs, strict=True):
+        exported = list(value.shape) if value.shape is not None else []
+        fixed = [
+            dim
+            for dim, got in zip(spec.shape, exported, strict=False)
+            if isinstance(dim, str) and isinstance(got, int)
+        ]
+        if fixed or len(exported) != len(spec.shape):
+            raise ModelError(
+                f"graph {graph.name}: {value.name} has shape {exported}, expected {spec.shape} "
+                f"(the exporter fixed {fixed}: some code computes on a size in Python)"
+            )
         value.shape = ir.Shape([d if isinstance(d, int) else ir.SymbolicDim(d) for d in spec.shape])
     return onnx_model
 
@@ -240,11 +282,15 @@ def _quiet_exporter() -> Iterator[None]:
 
 
 @torch.no_grad()
-def _check(model: Pi3, folder: Path, manifest: OnnxManifest, size: tuple[int, int]) -> dict[str, float]:
-    """Max |ORT - PyTorch| per output of a mapping pass (2 keyframes) and a tracking pass."""
+def _check(
+    model: Pi3 | DepthAnything3, folder: Path, manifest: OnnxManifest, size: tuple[int, int]
+) -> dict[str, float]:
+    """Max |ORT - PyTorch| per output of a mapping pass (2 keyframes) and a tracking pass, in
+    the SDK's conventions (what the two backends return)."""
+    family = family_adapter(model)
     generator = torch.Generator().manual_seed(1)
     images = torch.rand(3, 3, *size, generator=generator)
-    mapped = model.forward_map(images[None, :2], heads=HeadSet.ALL)
+    mapped = family.map(images[:2])
     cache = KVCache.from_layers(
         mapped.keys,
         mapped.values,
@@ -253,29 +299,26 @@ def _check(model: Pi3, folder: Path, manifest: OnnxManifest, size: tuple[int, in
         keyframe_ids=range(2),
     )
     _fill_scratch(cache, float("nan"))
-    tracked = model.forward_track(images[2:], cache, heads=HeadSet.ALL)
+    tracked = family.track(images[2:], cache, HeadSet.ALL)
     _fill_scratch(cache, float("nan"))  # the PyTorch pass wrote the query's K/V there
 
-    runner = Pi3OnnxRunner(folder, manifest)
+    runner = OnnxRunner(folder, manifest)
     ort_map, keys, values = runner.map(images[:2].numpy())
     past = [(k.numpy(), v.numpy()) for k, v in map(cache.buffers, range(cache.layout.num_layers))]
     ort_track = runner.track(images[2:].numpy(), past, cache.length, HeadSet.ALL)
-    reference = mapped.output
-    assert reference.conf is not None and reference.local_points is not None  # HeadSet.ALL
-    assert tracked.conf is not None and tracked.local_points is not None
-    pairs: dict[str, tuple[Any, torch.Tensor]] = {
-        "map.camera_poses": (ort_map.poses, reference.camera_poses[0]),
-        "map.conf_logits": (ort_map.conf_logits, reference.conf[0, ..., 0]),
-        "map.local_points": (ort_map.local_points, reference.local_points[0]),
-        "map.keys": (np.stack(keys), torch.stack(mapped.keys)),
-        "map.values": (np.stack(values), torch.stack(mapped.values)),
-        "track.camera_poses": (ort_track.poses, tracked.camera_poses[:, 0]),
-        "track.conf_logits": (ort_track.conf_logits, tracked.conf[:, 0, ..., 0]),
-        "track.local_points": (ort_track.local_points, tracked.local_points[:, 0]),
+    pairs: dict[str, tuple[Any, Any]] = {
+        "map.camera_poses": (ort_map.poses, mapped.frames.poses),
+        "map.confidence": (ort_map.confidence, mapped.frames.confidence),
+        "map.local_points": (ort_map.local_points, mapped.frames.local_points),
+        "map.keys": (np.stack(keys), torch.stack(mapped.keys).numpy()),
+        "map.values": (np.stack(values), torch.stack(mapped.values).numpy()),
+        "track.camera_poses": (ort_track.poses, tracked.poses),
+        "track.confidence": (ort_track.confidence, tracked.confidence),
+        "track.local_points": (ort_track.local_points, tracked.local_points),
     }
     errors: dict[str, float] = {}
     for name, (got, expected) in pairs.items():
-        truth = expected.double().numpy()
+        truth = np.asarray(expected, dtype=np.float64)
         error = float(np.abs(np.asarray(got, dtype=np.float64) - truth).max())
         errors[name] = error
         if not error <= _CHECK_TOLERANCE * max(1.0, float(np.abs(truth).max())):

@@ -6,12 +6,11 @@ Each module's ``forward`` is the computation of one ONNX graph (names and shapes
 - the patch grid (h, w) travels in tensor shapes (``patch_tokens`` [F, h, w, dim],
   ``hidden_patches`` [F, h, w, 2*dim]), and RoPE tables are computed from it, so every graph
   keeps H and W dynamic;
-- the tracking decoder attends over ``cat(past[:, :, :past_length], own)`` instead of writing
-  into a cache buffer in place (``Attention.forward_track``), which ONNX cannot express; its
-  past inputs may be whole ``KVCache`` buffers (cached tokens then scratch), passed without a
-  copy;
+- the tracking decoder attends over ``cat(past[:, :, :past_length], own)``
+  (``past_attention.attend_past``); its past inputs may be whole ``KVCache`` buffers (cached
+  tokens then scratch), passed without a copy;
 - the camera head stops before the SVD: it returns the raw 9 rotation numbers and the
-  translation, and ``backends/onnx_graphs.camera_poses`` finishes the pose in numpy.
+  translation, and ``backends/onnx_families.py`` finishes the pose in numpy.
 
 The modules hold no weights of their own: they run the ``Pi3``'s submodules, so the exported
 weights are the model's (and the weights fingerprint is the checkpoint's).
@@ -24,6 +23,7 @@ from typing import cast
 import torch
 from torch import nn
 
+from kvtracker_sdk.export_onnx.past_attention import attend_past
 from kvtracker_sdk.models.layers.block import Block
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.pi3 import Pi3
@@ -102,32 +102,6 @@ class DecoderMapGraph(nn.Module):
         return (*_split_hidden(self.model, hidden[0], grid_h, grid_w), *kv)
 
 
-def _attend_past(
-    block: Block,
-    x: torch.Tensor,
-    rope: RopeTable,
-    past_key: torch.Tensor,
-    past_value: torch.Tensor,
-    past_length: torch.Tensor,
-) -> torch.Tensor:
-    """A global block for one frame ``x`` [1, T, dim] over ``past[:, :, :past_length]`` + itself.
-
-    The same computation as ``Block.forward_track`` (pre-norm attention, LayerScale, MLP), with
-    the cache read by slicing instead of written in place. The attention is spelled out
-    (softmax(q kᵀ / sqrt(d)) v) rather than ``F.scaled_dot_product_attention``: ONNX Runtime
-    then folds the key transpose into its MatMul, 15% faster at 32 keyframes than the
-    exporter's decomposition of SDPA.
-    """
-    attn = block.attn
-    q, k, v = attn.project(block.norm1(x), rope)  # [1, heads, T, head_dim] each
-    keys = torch.cat((past_key[:, :, :past_length], k), dim=2)  # [1, heads, past + T, head_dim]
-    values = torch.cat((past_value[:, :, :past_length], v), dim=2)
-    scores = torch.matmul(q * q.shape[-1] ** -0.5, keys.transpose(-1, -2))  # [1, heads, T, past + T]
-    attended = torch.matmul(torch.softmax(scores, dim=-1), values)
-    x = x + block.ls1(attn.proj(attended.transpose(1, 2).flatten(2)))  # [1, T, dim]
-    return x + block.ls2(block.mlp(block.norm2(x)))
-
-
 class DecoderTrackGraph(nn.Module):
     """One query frame attending over a cache in every global layer.
 
@@ -153,7 +127,7 @@ class DecoderTrackGraph(nn.Module):
             if index in cached_layer:  # global attention over the cache and the frame itself
                 layer = cached_layer[index]
                 past_key, past_value = past[2 * layer], past[2 * layer + 1]
-                x = _attend_past(cast(Block, block), x, rope, past_key, past_value, past_length)
+                x = attend_past(cast(Block, block), x, rope, past_key, past_value, past_length)
             else:  # attention within the frame
                 x = block(x, rope=rope)
             if index >= len(decoder) - 2:

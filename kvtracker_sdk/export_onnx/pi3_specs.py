@@ -1,26 +1,20 @@
-"""The Pi3 graphs as data: module, input and output names with their dims, example inputs.
-
-``pi3_graphs(config)`` lists every graph of an export in the order they run. Dims are ints
-(fixed by the architecture) or names (dynamic axes); the same names appear in the ``.onnx``
-files and in ``manifest.json``. ``dynamic_shapes`` turns them into ``torch.export`` dims, and
-``example_inputs(model, size)`` computes with PyTorch the example arguments of every graph.
+"""The Pi3 graphs as data: ``pi3_graphs(config)`` lists every graph of an export in the order
+they run (``graph_def.GraphDef``), and ``example_inputs(model, size)`` computes with PyTorch the
+example arguments of every graph.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import torch
-from torch import nn
 
-from kvtracker_sdk.backends.onnx_manifest import (
-    TensorSpec,
-    past_key_name,
-    past_value_name,
-    present_key_name,
-    present_value_name,
+from kvtracker_sdk.backends.onnx_manifest import TensorSpec
+from kvtracker_sdk.export_onnx.graph_def import (
+    EXAMPLE_KEYFRAMES,
+    GraphDef,
+    past_specs,
+    present_specs,
 )
 from kvtracker_sdk.export_onnx.pi3_graphs import (
     CameraHeadGraph,
@@ -32,19 +26,7 @@ from kvtracker_sdk.export_onnx.pi3_graphs import (
 )
 from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
 
-__all__ = ["EXAMPLE_KEYFRAMES", "GraphDef", "dynamic_shapes", "example_inputs", "pi3_graphs"]
-
-EXAMPLE_KEYFRAMES = 2  # frames of the export's example inputs (not 1: torch.export would fix it)
-
-
-@dataclass(frozen=True)
-class GraphDef:
-    """One graph: the module computing it and its flattened inputs and outputs."""
-
-    name: str
-    module: Callable[[Pi3], nn.Module]
-    inputs: tuple[TensorSpec, ...]
-    outputs: tuple[TensorSpec, ...]
+__all__ = ["example_inputs", "pi3_graphs"]
 
 
 def _hidden(frames: int | str, dim: int, registers: int) -> tuple[TensorSpec, TensorSpec]:
@@ -63,16 +45,8 @@ def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
     patches = TensorSpec(name="patch_tokens", shape=("frames", "grid_h", "grid_w", dim))
     query_patches = TensorSpec(name="patch_tokens", shape=(1, "grid_h", "grid_w", dim))
     hidden = _hidden("frames", dim, registers)
-    present = tuple(
-        TensorSpec(name=name(i), shape=(1, heads, "map_tokens", head_dim))
-        for i in range(layers)
-        for name in (present_key_name, present_value_name)
-    )
-    past = tuple(
-        TensorSpec(name=name(i), shape=(1, heads, "past_capacity", head_dim))
-        for i in range(layers)
-        for name in (past_key_name, past_value_name)
-    )
+    present = present_specs(layers, heads, head_dim)
+    past = past_specs(layers, heads, head_dim)
     return [
         GraphDef(
             "encoder",
@@ -109,30 +83,6 @@ def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
             (TensorSpec(name="local_points", shape=("frames", "height", "width", 3)),),
         ),
     ]
-
-
-def dynamic_shapes(graph: GraphDef, patch_size: int) -> tuple[Any, ...]:
-    """``torch.export`` dynamic shapes of the graph's forward arguments.
-
-    One ``Dim`` per dim name; "height"/"width" are ``patch_size`` times the grid dims, so the
-    exporter knows H and W divide exactly into patches.
-    """
-    dims: dict[str, Any] = {}
-
-    def dim(name: str) -> Any:
-        if name in ("height", "width"):
-            return patch_size * dim("grid_h" if name == "height" else "grid_w")
-        if name not in dims:
-            dims[name] = torch.export.Dim(name)
-        return dims[name]
-
-    per_input = [
-        {axis: dim(size) for axis, size in enumerate(spec.shape) if isinstance(size, str)} or None
-        for spec in graph.inputs
-    ]
-    if graph.name == "decoder_track":  # forward(patch_tokens, past_length, past: tuple)
-        return (per_input[0], per_input[1], tuple(per_input[2:]))
-    return tuple(per_input)
 
 
 @torch.no_grad()

@@ -1,7 +1,7 @@
 """Checkpoints exported once and reused: what ``OnnxBackend.from_pretrained(checkpoint)`` serves.
 
-``exported_folder(weights)`` loads a checkpoint (``.safetensors`` file, folder or hub id),
-and returns ``<cache_dir>/pi3-<weights fingerprint>``, exporting into it first unless an export
+``exported_folder(weights)`` loads a checkpoint of either family (model name, ``.safetensors``
+file, folder or hub id), and returns ``<cache_dir>/<family>-<weights fingerprint>``, exporting into it first unless an export
 of the same weights is already there. The default ``cache_dir`` is
 ``$KVTRACKER_CACHE_DIR/onnx``, else ``$XDG_CACHE_HOME/kvtracker_sdk/onnx``, else
 ``~/.cache/kvtracker_sdk/onnx``. The first call for the full model takes minutes (the export is
@@ -15,9 +15,9 @@ from pathlib import Path
 
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.errors import ModelError
-from kvtracker_sdk.export_onnx.exporter import export_pi3
+from kvtracker_sdk.export_onnx.exporter import export_model
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.models.pi3 import load_pi3
+from kvtracker_sdk.models.registry import load_model
 
 __all__ = ["default_cache_dir", "exported_folder"]
 
@@ -35,14 +35,20 @@ def default_cache_dir() -> Path:
 def exported_folder(
     weights: str | os.PathLike[str], *, cache_dir: str | os.PathLike[str] | None = None
 ) -> Path:
-    """The export folder of a Pi3 checkpoint, made on first use (see the module docstring)."""
-    loaded = load_pi3(weights)
-    folder = Path(cache_dir or default_cache_dir()) / f"pi3-{loaded.fingerprint}"
+    """The export folder of a checkpoint, made on first use (see the module docstring)."""
+    loaded = load_model(weights)
+    folder = Path(cache_dir or default_cache_dir()) / f"{loaded.family}-{loaded.fingerprint}"
     try:
         if read_manifest(folder).weights_fingerprint == loaded.fingerprint:
             return folder
     except ModelError:  # absent, incomplete or from another SDK version: export again
         pass
     _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
-    export_pi3(loaded.model, folder, weights_fingerprint=loaded.fingerprint, overwrite=True)
+    export_model(
+        loaded.model,
+        folder,
+        weights_fingerprint=loaded.fingerprint,
+        name=loaded.name,
+        overwrite=True,
+    )
     return folder

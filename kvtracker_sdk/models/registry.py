@@ -27,9 +27,9 @@ from torch import nn
 
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.models.checkpoint_utils import resolve_weights
-from kvtracker_sdk.models.da3 import DA3Config, load_da3
+from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3, load_da3
 from kvtracker_sdk.models.da3.checkpoint import HUB_REPOS as DA3_HUB_REPOS
-from kvtracker_sdk.models.pi3 import Pi3Config, load_pi3
+from kvtracker_sdk.models.pi3 import Pi3, Pi3Config, load_pi3
 
 __all__ = [
     "MODEL_NAMES",
@@ -38,6 +38,8 @@ __all__ = [
     "checkpoint_family",
     "family_of_keys",
     "load_model",
+    "model_family",
+    "model_name",
 ]
 
 Family = Literal["pi3", "da3"]
@@ -97,8 +99,25 @@ def load_model(
         raise ModelError(f"{path} holds a {family} checkpoint, got a {type(config).__name__}")
     if family == "pi3":
         pi3 = load_pi3(path, config=config if isinstance(config, Pi3Config) else None)
-        name = "pi3" if pi3.model.config == Pi3Config.large() else "pi3-custom"
-        return LoadedModel("pi3", name, pi3.model, pi3.fingerprint, pi3.path)
+        return LoadedModel("pi3", model_name(pi3.model), pi3.model, pi3.fingerprint, pi3.path)
     da3 = load_da3(path, config=config if isinstance(config, DA3Config) else None)
-    preset = da3.model.config.preset_name
-    return LoadedModel("da3", f"da3-{preset or 'custom'}", da3.model, da3.fingerprint, da3.path)
+    return LoadedModel("da3", model_name(da3.model), da3.model, da3.fingerprint, da3.path)
+
+
+def model_family(model: nn.Module) -> Family:
+    """The family of a network; ``ModelError`` for anything but ``Pi3`` / ``DepthAnything3``."""
+    if isinstance(model, Pi3):
+        return "pi3"
+    if isinstance(model, DepthAnything3):
+        return "da3"
+    raise ModelError(f"{type(model).__name__} is neither a Pi3 nor a DepthAnything3 network")
+
+
+def model_name(model: nn.Module) -> str:
+    """The user-facing name of a network's architecture: ``pi3``, ``da3-small``, ... or
+    ``<family>-custom`` for configurations that are not an official release."""
+    if isinstance(model, Pi3):
+        return "pi3" if model.config == Pi3Config.large() else "pi3-custom"
+    if isinstance(model, DepthAnything3):
+        return f"da3-{model.config.preset_name or 'custom'}"
+    raise ModelError(f"{type(model).__name__} is neither a Pi3 nor a DepthAnything3 network")

@@ -201,7 +201,7 @@ def test_from_pretrained_exports_a_checkpoint_once(
         exports.append(folder)
         shutil.copytree(golden_onnx_dir, folder, dirs_exist_ok=True)
 
-    monkeypatch.setattr(reuse, "export_pi3", export)
+    monkeypatch.setattr(reuse, "export_model", export)
     first = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
     again = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
     assert first.folder == again.folder == slot and exports == [slot]  # exported once

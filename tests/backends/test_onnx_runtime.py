@@ -1,8 +1,8 @@
 """The exported graphs under ONNX Runtime reproduce the golden Pi3 vectors (``../shared/golden/pi3``).
 
-``Pi3OnnxRunner`` is driven with the golden float images directly (the backend's uint8 path is
+``OnnxRunner`` is driven with the golden float images directly (the backend's uint8 path is
 tested in ``test_onnx.py``). Tolerances: the golden README's fp32 ones — camera_poses atol 1e-5,
-conf atol 1e-4, points/local_points atol 1e-4 + rtol 1e-4, K/V atol 1e-5.
+conf logits atol 1e-4 (confidence = sigmoid(logit): atol 2.5e-5), points/local_points atol 1e-4 + rtol 1e-4, K/V atol 1e-5.
 """
 
 from __future__ import annotations
@@ -13,9 +13,11 @@ import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
+from scipy.special import expit
 
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
-from kvtracker_sdk.backends.onnx_runtime import HeadOutputs, Pi3OnnxRunner, camera_poses
+from kvtracker_sdk.backends.onnx_families import HeadOutputs, camera_poses
+from kvtracker_sdk.backends.onnx_runtime import OnnxRunner
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.models.pi3 import load_pi3
 from kvtracker_sdk.models.pi3.heads import rotation_from_matrix9
@@ -26,8 +28,8 @@ CASES = {"case1": (3, ["query"]), "case2": (5, ["query5", "query_flip"])}  # key
 
 
 @pytest.fixture(scope="module")
-def runner(golden_onnx_dir: Path) -> Pi3OnnxRunner:
-    return Pi3OnnxRunner(golden_onnx_dir, read_manifest(golden_onnx_dir), threads=1)
+def runner(golden_onnx_dir: Path) -> OnnxRunner:
+    return OnnxRunner(golden_onnx_dir, read_manifest(golden_onnx_dir), threads=1)
 
 
 def golden(case: str, name: str) -> dict[str, np.ndarray]:
@@ -40,9 +42,9 @@ def assert_matches(outputs: HeadOutputs, expected: dict[str, np.ndarray], prefix
     np.testing.assert_allclose(
         outputs.poses, expected[prefix + "camera_poses"][0], atol=1e-5, rtol=0
     )
-    assert outputs.conf_logits is not None and outputs.local_points is not None
+    assert outputs.confidence is not None and outputs.local_points is not None
     np.testing.assert_allclose(
-        outputs.conf_logits, expected[prefix + "conf"][0, ..., 0], atol=1e-4, rtol=0
+        outputs.confidence, expit(expected[prefix + "conf"][0, ..., 0]), atol=2.5e-5, rtol=0
     )
     np.testing.assert_allclose(
         outputs.local_points, expected[prefix + "local_points"][0], atol=1e-4, rtol=1e-4
@@ -62,7 +64,7 @@ def query_image(imgs: np.ndarray, keyframes: int, name: str) -> np.ndarray:
 
 
 def cache_from_map(
-    runner: Pi3OnnxRunner, keys: list[np.ndarray], values: list[np.ndarray], tokens_per_frame: int
+    runner: OnnxRunner, keys: list[np.ndarray], values: list[np.ndarray], tokens_per_frame: int
 ) -> KVCache:
     return KVCache.from_layers(
         [torch.from_numpy(k) for k in keys],
@@ -78,13 +80,13 @@ def buffers(cache: KVCache) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_mapping_all_frames_is_the_official_forward(runner: Pi3OnnxRunner, case: str) -> None:
+def test_mapping_all_frames_is_the_official_forward(runner: OnnxRunner, case: str) -> None:
     outputs, _, _ = runner.map(golden(case, "inputs")["imgs"][0])
     assert_matches(outputs, golden(case, "outputs"), prefix="")
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test_mapping_and_queries_through_the_cache_input(runner: Pi3OnnxRunner, case: str) -> None:
+def test_mapping_and_queries_through_the_cache_input(runner: OnnxRunner, case: str) -> None:
     keyframes, queries = CASES[case]
     imgs = golden(case, "inputs")["imgs"]
     outputs, keys, values = runner.map(imgs[0, :keyframes])
@@ -106,7 +108,7 @@ def test_mapping_and_queries_through_the_cache_input(runner: Pi3OnnxRunner, case
     assert cache.equals(before)
 
 
-def test_one_tracking_graph_serves_caches_of_any_length(runner: Pi3OnnxRunner) -> None:
+def test_one_tracking_graph_serves_caches_of_any_length(runner: OnnxRunner) -> None:
     """Caches of 1 to 5 keyframes, as KVCache buffers with scratch or compact, through one graph."""
     imgs = golden("case2", "inputs")["imgs"]
     model = load_pi3(shared_path("golden", "pi3", "weights.safetensors")).model
@@ -128,7 +130,7 @@ def test_one_tracking_graph_serves_caches_of_any_length(runner: Pi3OnnxRunner) -
     assert np.abs(poses[0] - poses[-1]).max() > 1e-3  # the cache's length changes the result
 
 
-def test_scratch_tokens_after_the_cache_are_ignored(runner: Pi3OnnxRunner) -> None:
+def test_scratch_tokens_after_the_cache_are_ignored(runner: OnnxRunner) -> None:
     imgs = golden("case1", "inputs")["imgs"]
     _, keys, values = runner.map(imgs[0, :3])
     cache = cache_from_map(runner, keys, values, tokens_per_frame=93)
@@ -137,20 +139,20 @@ def test_scratch_tokens_after_the_cache_are_ignored(runner: Pi3OnnxRunner) -> No
         key[:, :, cache.length :] = np.nan
         value[:, :, cache.length :] = np.inf
     dirty = runner.track(imgs[0, 3:], buffers(cache), cache.length, HeadSet.ALL)
-    assert dirty.conf_logits is not None and clean.conf_logits is not None
+    assert dirty.confidence is not None and clean.confidence is not None
     np.testing.assert_array_equal(dirty.poses, clean.poses)
-    np.testing.assert_array_equal(dirty.conf_logits, clean.conf_logits)
+    np.testing.assert_array_equal(dirty.confidence, clean.confidence)
 
 
 @pytest.mark.parametrize("heads", list(HeadSet))
-def test_head_sets_run_only_their_graphs(runner: Pi3OnnxRunner, heads: HeadSet) -> None:
+def test_head_sets_run_only_their_graphs(runner: OnnxRunner, heads: HeadSet) -> None:
     imgs = golden("case1", "inputs")["imgs"]
     _, keys, values = runner.map(imgs[0, :3])
     tracked = runner.track(
         imgs[0, 3:], list(zip(keys, values, strict=True)), keys[0].shape[2], heads
     )
     assert tracked.poses.shape == (1, 4, 4)
-    assert (tracked.conf_logits is None) == (heads is HeadSet.CAMERA)
+    assert (tracked.confidence is None) == (heads is HeadSet.CAMERA)
     assert (tracked.local_points is None) == (heads is not HeadSet.ALL)
 
 

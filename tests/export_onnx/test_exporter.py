@@ -13,10 +13,10 @@ import onnx
 import pytest
 import torch
 
-from kvtracker_sdk.backends.onnx_manifest import GRAPH_NAMES, OnnxManifest, read_manifest
+from kvtracker_sdk.backends.onnx_manifest import FAMILY_GRAPHS, OnnxManifest, read_manifest
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.errors import ConfigError, ModelError
-from kvtracker_sdk.export_onnx import export_onnx, export_pi3, exporter
+from kvtracker_sdk.export_onnx import export_onnx, export_model, exporter
 from kvtracker_sdk.models.pi3 import load_pi3
 from tests.helpers import shared_path
 from tests.models.pi3.factories import random_pi3, tiny_config
@@ -54,7 +54,7 @@ def test_manifest_identity_equals_the_torch_backends(manifest: OnnxManifest) -> 
 def test_graph_files_declare_the_manifest_signatures(
     golden_onnx_dir: Path, manifest: OnnxManifest
 ) -> None:
-    assert tuple(manifest.graphs) == GRAPH_NAMES
+    assert tuple(manifest.graphs) == FAMILY_GRAPHS["pi3"]
     for name, spec in manifest.graphs.items():
         graph = onnx.load(golden_onnx_dir / spec.file, load_external_data=False).graph
         assert [(i.name, dims(i)) for i in graph.input] == [
@@ -125,13 +125,13 @@ def test_failed_export_leaves_the_old_folder_and_no_debris(
     existing.mkdir()
     (existing / "keep.txt").write_text("old")
 
-    def fail(model: object, folder: Path, *args: object) -> None:
+    def fail(model: object, graphs: object, folder: Path, **options: object) -> None:
         (folder / "encoder.onnx").write_text("half written")
         raise ModelError("the graphs disagree")
 
     monkeypatch.setattr(exporter, "_export_into", fail)
     with pytest.raises(ModelError):
-        export_pi3(random_pi3(), existing, overwrite=True)
+        export_model(random_pi3(), existing, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]
     assert [p.name for p in existing.iterdir()] == ["keep.txt"]
 
@@ -143,12 +143,12 @@ def test_overwrite_replaces_only_with_a_complete_export(
     existing.mkdir()
     (existing / "keep.txt").write_text("old")
 
-    def succeed(model: object, folder: Path, *args: object) -> OnnxManifest:
+    def succeed(model: object, graphs: object, folder: Path, **options: object) -> OnnxManifest:
         (folder / "manifest.json").write_text(json.dumps({"new": True}))
         return manifest
 
     monkeypatch.setattr(exporter, "_export_into", succeed)
-    export_pi3(random_pi3(), existing, overwrite=True)
+    export_model(random_pi3(), existing, overwrite=True)
     assert sorted(p.name for p in existing.iterdir()) == ["manifest.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["export"]  # old copy removed
     assert oct(existing.stat().st_mode & 0o777) == "0o755"
@@ -157,11 +157,11 @@ def test_overwrite_replaces_only_with_a_complete_export(
 def test_unexportable_requests_are_refused(tmp_path: Path) -> None:
     model = random_pi3()
     with pytest.raises(ConfigError, match="multiples of 14"):
-        export_pi3(model, tmp_path / "a", check_size=(100, 168))
+        export_model(model, tmp_path / "a", check_size=(100, 168))
     with pytest.raises(ConfigError, match="fp32"):
-        export_pi3(random_pi3().set_precision(torch.bfloat16), tmp_path / "b")
+        export_model(random_pi3().set_precision(torch.bfloat16), tmp_path / "b")
     with pytest.raises(ConfigError, match="weights .* or a config"):
         export_onnx(tmp_path / "c")
     with pytest.raises(ModelError, match="Pi3"):
-        export_pi3(torch.nn.Linear(2, 2), tmp_path / "d")  # type: ignore[arg-type]
+        export_model(torch.nn.Linear(2, 2), tmp_path / "d")  # type: ignore[arg-type]
     assert not list(tmp_path.iterdir())

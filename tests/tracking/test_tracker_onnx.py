@@ -1,6 +1,7 @@
 """A tracker session on the 20 real TUM frames: ONNX Runtime, PyTorch, and a live swap between them.
 
-The golden (small, random) Pi3 weights, exported once per test session. Both runtimes compute
+Both families, with their golden (small, random) weights exported once per test session — Pi3
+and Depth Anything 3 (``family`` parametrises the module's fixtures). Both runtimes compute
 the same fp32 function, so every pose agrees within 1e-4 (the issue's tolerance) whichever
 backend tracked it and whichever built the map. Keyframes every 5 frames: 4 mapping passes, so
 maps made by one runtime are tracked and rebuilt by the other after the swap.
@@ -35,13 +36,27 @@ def frames() -> list[tuple[float, np.ndarray]]:
     return [(float(f.stem), cv2.cvtColor(cv2.imread(str(f)), cv2.COLOR_BGR2RGB)) for f in files]
 
 
-@pytest.fixture(scope="module")
-def make_torch() -> Callable[[], TorchBackend]:
-    return lambda: TorchBackend.from_pretrained(shared_path("golden", "pi3", "weights.safetensors"))
+@pytest.fixture(scope="module", params=["pi3", "da3"])
+def family(request: pytest.FixtureRequest) -> str:
+    return str(request.param)
 
 
 @pytest.fixture(scope="module")
-def make_onnx(golden_onnx_dir: Path) -> Callable[[], OnnxBackend]:
+def make_torch(family: str) -> Callable[[], TorchBackend]:
+    weights = shared_path("golden", family, "weights.safetensors")
+    return lambda: TorchBackend.from_pretrained(weights)
+
+
+@pytest.fixture(scope="module")
+def make_onnx(family: str, request: pytest.FixtureRequest) -> Callable[[], OnnxBackend]:
+    folder: Path = request.getfixturevalue(
+        "golden_onnx_dir" if family == "pi3" else "golden_da3_onnx_dir"
+    )
+    return lambda: OnnxBackend(folder, threads=1)
+
+
+@pytest.fixture(scope="module")
+def make_pi3_onnx(golden_onnx_dir: Path) -> Callable[[], OnnxBackend]:
     return lambda: OnnxBackend(golden_onnx_dir, threads=1)
 
 
@@ -87,6 +102,7 @@ def test_onnx_session_gives_the_torch_poses(
 ) -> None:
     results, runtimes = run(frames, make_onnx())
     assert set(runtimes) == {"onnx"}
+    assert results[-1].state == torch_session[-1].state
     assert_same_poses(results, torch_session)
 
 
@@ -109,12 +125,12 @@ def test_live_swap_keeps_the_map_and_the_poses(
 
 
 def test_swap_to_other_weights_is_refused(
-    frames: list[tuple[float, np.ndarray]], make_onnx: Callable[[], OnnxBackend]
+    frames: list[tuple[float, np.ndarray]], make_pi3_onnx: Callable[[], OnnxBackend]
 ) -> None:
     from tests.models.pi3.factories import random_pi3, tiny_config
 
     stranger = TorchBackend(random_pi3(tiny_config(dim=64, depth=8), seed=5))  # the golden layout
-    with Tracker(TrackerConfig.from_dict(CONFIG), make_onnx()) as tracker:
+    with Tracker(TrackerConfig.from_dict(CONFIG), make_pi3_onnx()) as tracker:
         tracker.push_frame(frames[0][1], timestamp=frames[0][0])
         assert stranger.info.layout == tracker.backend.info.layout
         with pytest.raises(BackendMismatchError, match="fingerprint"):

@@ -15,6 +15,7 @@ from kvtracker_sdk.models.da3.config import (
 from kvtracker_sdk.models.da3.conventions import (
     SDKOutput,
     confidence_from_depth_conf,
+    sdk_outputs,
     to_sdk,
     unproject_depth,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "canonical_state_dict",
     "confidence_from_depth_conf",
     "load_da3",
+    "sdk_outputs",
     "select_reference_view",
     "to_sdk",
     "unproject_depth",

@@ -25,7 +25,13 @@ import torch
 from kvtracker_sdk.models.da3.camera import quat_xyzw_to_matrix
 from kvtracker_sdk.models.da3.model import DA3Output
 
-__all__ = ["SDKOutput", "confidence_from_depth_conf", "to_sdk", "unproject_depth"]
+__all__ = [
+    "SDKOutput",
+    "confidence_from_depth_conf",
+    "sdk_outputs",
+    "to_sdk",
+    "unproject_depth",
+]
 
 
 @dataclass(frozen=True)
@@ -57,21 +63,39 @@ def unproject_depth(depth: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tens
 
 def to_sdk(output: DA3Output, *, with_points: bool = False) -> SDKOutput:
     """``DA3Output`` -> ``SDKOutput``; ``with_points`` unprojects the depth (needs DualDPT)."""
-    pose_enc = output.pose_enc.double()
+    return sdk_outputs(
+        output.pose_enc,
+        output.intrinsics,
+        depth=output.depth,
+        depth_conf=output.depth_conf,
+        with_points=with_points,
+    )
+
+
+def sdk_outputs(
+    pose_enc: torch.Tensor,
+    intrinsics: torch.Tensor,
+    *,
+    depth: torch.Tensor | None = None,
+    depth_conf: torch.Tensor | None = None,
+    with_points: bool = False,
+) -> SDKOutput:
+    """DA3's raw outputs [..., 9] / [..., 3, 3] / [..., H, W] -> ``SDKOutput``: shared by
+    ``to_sdk`` (PyTorch) and the ONNX backend, so both convert with the same arithmetic."""
+    pose_enc = pose_enc.double()
     T_world_cam = torch.zeros(
         *pose_enc.shape[:-1], 4, 4, dtype=torch.float64, device=pose_enc.device
     )
     T_world_cam[..., :3, :3] = quat_xyzw_to_matrix(pose_enc[..., 3:7])
     T_world_cam[..., :3, 3] = pose_enc[..., :3]
     T_world_cam[..., 3, 3] = 1.0
-    intrinsics = output.intrinsics.double()
-    if output.depth is None or output.depth_conf is None:
-        return SDKOutput(T_world_cam=T_world_cam, intrinsics=intrinsics)
-    points = unproject_depth(output.depth, output.intrinsics) if with_points else None
+    if depth is None or depth_conf is None:
+        return SDKOutput(T_world_cam=T_world_cam, intrinsics=intrinsics.double())
+    points = unproject_depth(depth, intrinsics) if with_points else None
     return SDKOutput(
         T_world_cam=T_world_cam,
-        intrinsics=intrinsics,
-        depth=output.depth,
-        confidence=confidence_from_depth_conf(output.depth_conf),
+        intrinsics=intrinsics.double(),
+        depth=depth,
+        confidence=confidence_from_depth_conf(depth_conf),
         local_points=points,
     )
