@@ -126,12 +126,15 @@ def time_variants(
     return samples
 
 
-def bench_config(name: str, args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Rows (one per N and head set) for preset ``name``."""
+def bench_config(
+    name: str, args: argparse.Namespace, configs: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """Rows (one per N and head set) for preset ``name``; its architecture goes to ``configs``."""
     if name in PRESETS:
         model: torch.nn.Module = build_model(PRESETS[name](), torch.float32)
     else:
         model = model_families.build_model(name, torch.float32)
+    configs[name] = model.config.model_dump(mode="json")  # type: ignore[operator]
     torch_backend = TorchBackend(model, model_name=name)  # type: ignore[arg-type]
     layout = family_adapter(model).layout  # type: ignore[arg-type]
     folder = ensure_export(torch_backend, model, args.onnx_dir / name)
@@ -221,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     import onnxruntime
 
     result: dict[str, Any] = {
-        "configs": {name: PRESETS[name]().model_dump() for name in args.config},
+        "configs": {},  # name -> the architecture, filled as each network is built
         "resolution": [args.size, args.size], "threads": args.threads, "clock": args.clock,
         "warmup": args.warmup, "repeats": args.repeats, "load_average_start": os.getloadavg(),
         "torch_flush_denormal": not args.keep_denormals,
@@ -231,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "rows": [],
     }  # fmt: skip
     for name in args.config:
-        result["rows"] += bench_config(name, args)
+        result["rows"] += bench_config(name, args, result["configs"])
     result["load_average_end"] = os.getloadavg()
     args.out_dir.mkdir(parents=True, exist_ok=True)
     path = args.out_dir / f"{args.name or f'onnx_vs_torch_{args.size}_{args.threads}thread'}.json"

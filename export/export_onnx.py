@@ -1,6 +1,7 @@
-"""Export a Pi3 checkpoint to ONNX without the installed ``kvtracker`` entry point.
+"""Export a Pi3 or Depth Anything 3 checkpoint to ONNX without the installed ``kvtracker`` entry point.
 
     python export/export_onnx.py --weights model.safetensors --out pi3-onnx/
+    python export/export_onnx.py --weights da3-small --out da3-small-onnx/
     python export/export_onnx.py --random-weights --config large --out /tmp/pi3-random/
 
 The same as ``kvtracker export-onnx`` (all its options; ``--help`` lists them): the export logic

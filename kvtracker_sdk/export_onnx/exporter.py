@@ -34,11 +34,10 @@ from collections.abc import Iterator
 from datetime import datetime, timezone
 from importlib.metadata import version
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
-from torch import nn
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME, GraphSpec, OnnxManifest
@@ -80,7 +79,8 @@ def export_onnx(
     _check_destination(Path(out_dir), overwrite)  # before minutes of loading and exporting
     if weights is not None:
         loaded = load_model(weights, config=config)
-        model, fingerprint, name = loaded.model, loaded.fingerprint, loaded.name
+        model = cast(Pi3 | DepthAnything3, loaded.model)  # what load_model returns
+        fingerprint, name = loaded.fingerprint, loaded.name
     elif config is not None:
         torch.manual_seed(seed)
         model = (Pi3(config) if isinstance(config, Pi3Config) else DepthAnything3(config)).eval()
@@ -214,7 +214,8 @@ def _export_into(
     return manifest
 
 
-def _export_graph(model: nn.Module, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
+def _export_graph(
+    model: Pi3 | DepthAnything3, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
     """One graph through the dynamo exporter; its dims renamed after ``graph``'s specs.
 
     ``ModelError`` if the exporter fixed a dim the specs declare dynamic (a Python computation

@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import cast
 
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx.exporter import export_model
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.models.da3 import DepthAnything3
+from kvtracker_sdk.models.pi3 import Pi3
 from kvtracker_sdk.models.registry import load_model
 
 __all__ = ["default_cache_dir", "exported_folder"]
@@ -45,7 +48,7 @@ def exported_folder(
         pass
     _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
     export_model(
-        loaded.model,
+        cast(Pi3 | DepthAnything3, loaded.model),  # what load_model returns
         folder,
         weights_fingerprint=loaded.fingerprint,
         name=loaded.name,
