@@ -45,6 +45,7 @@ from kvtracker_sdk.types import FrameResult, HeadSet, MapStatus, Pose, StateReas
 
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
+    from kvtracker_sdk.backends.onnx import OnnxBackend
     from kvtracker_sdk.backends.simulated import SimulatedBackend
     from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
@@ -67,6 +68,7 @@ _LAZY: dict[str, str] = {
     "MapInfo": "kvtracker_sdk.io.map_format",
     "load_map": "kvtracker_sdk.io.map_file",
     "read_map_info": "kvtracker_sdk.io.map_file",
+    "OnnxBackend": "kvtracker_sdk.backends.onnx",  # onnxruntime is imported when one is made
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Tracker": "kvtracker_sdk.tracking.tracker",
@@ -107,6 +109,7 @@ __all__ = [
     "MissingDependencyError",
     "ModelError",
     "NonFiniteImageError",
+    "OnnxBackend",
     "Pose",
     "ResolutionChangedError",
     "Sim3",

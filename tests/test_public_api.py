@@ -31,6 +31,12 @@ def test_import_is_cheap() -> None:
     assert out.stdout.strip() == "False"
 
 
+def test_onnx_backend_imports_onnxruntime_only_when_one_is_made() -> None:
+    code = "import sys, kvtracker_sdk; kvtracker_sdk.OnnxBackend; print('onnxruntime' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 def test_library_is_silent_by_default() -> None:
     code = (
         "from kvtracker_sdk.log import get_logger\n"
@@ -89,6 +95,7 @@ PUBLIC_API = [
     "MissingDependencyError",
     "ModelError",
     "NonFiniteImageError",
+    "OnnxBackend",
     "Pose",
     "ResolutionChangedError",
     "Sim3",
