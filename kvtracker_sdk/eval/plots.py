@@ -3,7 +3,9 @@
 One figure: the camera centres projected on the x-y, x-z and y-z planes of the world frame
 (estimate, and the reference when given), and, when per-pose errors are given, the translation
 error over time. Projections on all three planes avoid guessing which axis is "up": TUM ground
-truth has z up, the tracker's world frame (the first keyframe's camera) has y down.
+truth has z up, the tracker's world frame (the first keyframe's camera) has y down. The
+estimate's line is broken where poses are missing (the tracker was lost: a gap in time longer
+than ``GAP_FACTOR`` median frame intervals), instead of a straight line across the gap.
 
 The figure is built on ``matplotlib.figure.Figure`` with the Agg canvas, never through
 ``pyplot``: no global backend is switched, no window can open, and plotting from a worker thread
@@ -22,8 +24,9 @@ from kvtracker_sdk.errors import MissingDependencyError, TrajectoryError
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.trajectory import Trajectory
 
-__all__ = ["plot_trajectory"]
+__all__ = ["GAP_FACTOR", "break_at_gaps", "plot_trajectory"]
 
+GAP_FACTOR = 3.0  # a time step longer than this many median steps is a gap in the trajectory
 _PLANES = ((0, 1), (0, 2), (1, 2))
 _AXIS_NAMES = "xyz"
 
@@ -59,7 +62,8 @@ def plot_trajectory(
     axes[0].legend(loc="best", fontsize="small")
     if translation_errors is not None:
         ax = axes[3]
-        ax.plot(estimate.stamps - estimate.stamps[0], translation_errors, color="tab:red", lw=1)
+        times, errors = break_at_gaps(estimate.stamps, translation_errors)
+        ax.plot(times - estimate.stamps[0], errors, color="tab:red", lw=1)
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"translation error [{units}]")
         ax.set_title("error over time")
@@ -72,6 +76,21 @@ def plot_trajectory(
     return target
 
 
+def break_at_gaps(
+    stamps: np.ndarray, values: np.ndarray, factor: float = GAP_FACTOR
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps, values)`` with a NaN row inserted in every gap: a time step longer than
+    ``factor`` times the median step (matplotlib breaks a line at NaN)."""
+    stamps = np.asarray(stamps, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    if len(stamps) < 3:
+        return stamps, values
+    steps = np.diff(stamps)
+    gaps = np.flatnonzero(steps > factor * np.median(steps)) + 1  # first index after each gap
+    blank = np.full((len(gaps), *values.shape[1:]), np.nan)
+    return np.insert(stamps, gaps, np.nan), np.insert(values, gaps, blank, axis=0)
+
+
 def _plot_plane(
     ax: Any, estimate: Trajectory, reference: Trajectory | None, i: int, j: int, units: str
 ) -> None:
@@ -79,7 +98,8 @@ def _plot_plane(
         ref = reference.positions
         ax.plot(ref[:, i], ref[:, j], color="0.45", lw=1.2, ls="--", label="reference")
     est = estimate.positions
-    ax.plot(est[:, i], est[:, j], color="tab:blue", lw=1.2, label="estimate")
+    _, line = break_at_gaps(estimate.stamps, est)
+    ax.plot(line[:, i], line[:, j], color="tab:blue", lw=1.2, label="estimate")
     ax.scatter(est[:1, i], est[:1, j], color="tab:green", s=25, zorder=3, label="start")
     ax.set_xlabel(f"{_AXIS_NAMES[i]} [{units}]")
     ax.set_ylabel(f"{_AXIS_NAMES[j]} [{units}]")

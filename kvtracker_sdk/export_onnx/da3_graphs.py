@@ -30,7 +30,7 @@ from torch import nn
 from kvtracker_sdk.export_onnx.past_attention import attend_past
 from kvtracker_sdk.models.da3 import DepthAnything3
 from kvtracker_sdk.models.da3.backbone import BackboneOutput
-from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
 
 __all__ = [
     "CameraHeadGraph",
@@ -90,18 +90,9 @@ class DecoderMapGraph(nn.Module):
         x = _views(patch_tokens)
         pinned = torch.zeros(1, dtype=torch.long, device=x.device)  # keyframe 0 is the reference
         camera = backbone.learned_camera_tokens(pinned, views)
-        rope = backbone.global_rope(x).repeat(views)
-        keys: list[torch.Tensor] = []
-        values: list[torch.Tensor] = []
-
-        def step(_: int, block: Block, tokens: torch.Tensor) -> torch.Tensor:
-            out, k, v = block.forward_map(tokens, rope=rope)
-            keys.append(k)
-            values.append(v)
-            return out
-
+        step = KVRecordingStep(backbone.global_rope(x).repeat(views))
         output = backbone.run_alternating(x, (grid_h, grid_w), camera, step)
-        kv = [tensor for pair in zip(keys, values, strict=True) for tensor in pair]
+        kv = [tensor for pair in zip(step.keys, step.values, strict=True) for tensor in pair]
         return (*_head_inputs(output, grid_h, grid_w), *kv)
 
 

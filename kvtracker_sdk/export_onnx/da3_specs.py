@@ -7,8 +7,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
-
 from kvtracker_sdk.backends.onnx_manifest import TensorSpec
 from kvtracker_sdk.export_onnx.da3_graphs import (
     NUM_FEATURE_LEVELS,
@@ -19,9 +17,11 @@ from kvtracker_sdk.export_onnx.da3_graphs import (
     EncoderGraph,
 )
 from kvtracker_sdk.export_onnx.graph_def import (
-    EXAMPLE_KEYFRAMES,
     GraphDef,
+    encoder_def,
+    example_pass,
     past_specs,
+    patch_tokens,
     present_specs,
 )
 from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
@@ -45,16 +45,10 @@ def da3_graphs(config: DA3Config) -> list[GraphDef]:
     vit = config.backbone
     dim, heads, head_dim = vit.embed_dim, vit.num_heads, vit.head_dim
     layers = len(vit.global_block_indices)
-    patches = TensorSpec(name="patch_tokens", shape=("frames", "grid_h", "grid_w", dim))
-    query_patches = TensorSpec(name="patch_tokens", shape=(1, "grid_h", "grid_w", dim))
+    patches, query_patches = patch_tokens("frames", dim), patch_tokens(1, dim)
     head_inputs = _head_inputs("frames", dim)
     return [
-        GraphDef(
-            "encoder",
-            EncoderGraph,
-            (TensorSpec(name="images", shape=("frames", 3, "height", "width")),),
-            (patches,),
-        ),
+        encoder_def(EncoderGraph, dim),
         GraphDef(
             "decoder_map",
             DecoderMapGraph,
@@ -89,28 +83,17 @@ def da3_graphs(config: DA3Config) -> list[GraphDef]:
     ]
 
 
-@torch.no_grad()
 def example_inputs(
     model: DepthAnything3, size: tuple[int, int], *, seed: int = 0
 ) -> dict[str, tuple[Any, ...]]:
-    """Forward arguments of every graph for ``EXAMPLE_KEYFRAMES`` keyframes and one query of
-    ``size`` = (H, W), computed with PyTorch from seeded random images.
-
-    The tracking decoder's past has one frame of spare capacity beyond ``past_length`` (as a
-    ``KVCache`` buffer has), so that the export keeps the two sizes apart.
-    """
-    generator = torch.Generator().manual_seed(seed)
-    images = torch.rand(EXAMPLE_KEYFRAMES + 1, 3, *size, generator=generator)
-    encoder = EncoderGraph(model)
-    keyframe_patches = encoder(images[:EXAMPLE_KEYFRAMES])
-    camera_tokens, *rest = DecoderMapGraph(model)(keyframe_patches)
-    features, kv = rest[:NUM_FEATURE_LEVELS], rest[NUM_FEATURE_LEVELS:]
-    tokens_per_frame = kv[0].shape[2] // EXAMPLE_KEYFRAMES
-    past = tuple(torch.cat((t, t[:, :, :tokens_per_frame]), dim=2) for t in kv)
+    """Forward arguments of every graph at ``size`` = (H, W) (``graph_def.example_pass``)."""
+    layers = len(model.config.backbone.global_block_indices)
+    example = example_pass(EncoderGraph(model), DecoderMapGraph(model), layers, size, seed)
+    camera_tokens, *features = example.head_inputs
     return {
-        "encoder": (images[:EXAMPLE_KEYFRAMES],),
-        "decoder_map": (keyframe_patches,),
-        "decoder_track": (encoder(images[EXAMPLE_KEYFRAMES:]), torch.tensor(kv[0].shape[2]), past),
+        "encoder": (example.images,),
+        "decoder_map": (example.keyframe_patches,),
+        "decoder_track": example.track_args,
         "head_camera": (camera_tokens,),
         "head_depth": tuple(features),
     }

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
-
 from kvtracker_sdk.backends.onnx_manifest import TensorSpec
 from kvtracker_sdk.export_onnx.graph_def import (
-    EXAMPLE_KEYFRAMES,
     GraphDef,
+    encoder_def,
+    example_pass,
     past_specs,
+    patch_tokens,
     present_specs,
 )
 from kvtracker_sdk.export_onnx.pi3_graphs import (
@@ -42,18 +42,12 @@ def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
     registers = config.decoder.num_register_tokens
     heads, head_dim = config.decoder.num_heads, config.decoder.head_dim
     layers = len(config.decoder.global_block_indices)
-    patches = TensorSpec(name="patch_tokens", shape=("frames", "grid_h", "grid_w", dim))
-    query_patches = TensorSpec(name="patch_tokens", shape=(1, "grid_h", "grid_w", dim))
+    patches, query_patches = patch_tokens("frames", dim), patch_tokens(1, dim)
     hidden = _hidden("frames", dim, registers)
     present = present_specs(layers, heads, head_dim)
     past = past_specs(layers, heads, head_dim)
     return [
-        GraphDef(
-            "encoder",
-            EncoderGraph,
-            (TensorSpec(name="images", shape=("frames", 3, "height", "width")),),
-            (patches,),
-        ),
+        encoder_def(EncoderGraph, dim),
         GraphDef("decoder_map", DecoderMapGraph, (patches,), (*hidden, *present)),
         GraphDef(
             "decoder_track",
@@ -85,26 +79,15 @@ def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
     ]
 
 
-@torch.no_grad()
 def example_inputs(model: Pi3, size: tuple[int, int], *, seed: int = 0) -> dict[str, tuple[Any, ...]]:
-    """Forward arguments of every graph for ``EXAMPLE_KEYFRAMES`` keyframes and one query of
-    ``size`` = (H, W), computed with PyTorch from seeded random images.
-
-    The tracking decoder's past has one frame of spare capacity beyond ``past_length`` (as a
-    ``KVCache`` buffer has), so that the export keeps the two sizes apart.
-    """
-    generator = torch.Generator().manual_seed(seed)
-    images = torch.rand(EXAMPLE_KEYFRAMES + 1, 3, *size, generator=generator)
-    encoder = EncoderGraph(model)
-    keyframe_patches = encoder(images[:EXAMPLE_KEYFRAMES])
-    hidden_registers, hidden_patches, *kv = DecoderMapGraph(model)(keyframe_patches)
-    tokens_per_frame = kv[0].shape[2] // EXAMPLE_KEYFRAMES
-    past = tuple(torch.cat((t, t[:, :, :tokens_per_frame]), dim=2) for t in kv)
-    hidden = (hidden_registers, hidden_patches)
+    """Forward arguments of every graph at ``size`` = (H, W) (``graph_def.example_pass``)."""
+    layers = len(model.config.decoder.global_block_indices)
+    example = example_pass(EncoderGraph(model), DecoderMapGraph(model), layers, size, seed)
+    hidden = example.head_inputs  # (hidden_registers, hidden_patches)
     return {
-        "encoder": (images[:EXAMPLE_KEYFRAMES],),
-        "decoder_map": (keyframe_patches,),
-        "decoder_track": (encoder(images[EXAMPLE_KEYFRAMES:]), torch.tensor(kv[0].shape[2]), past),
+        "encoder": (example.images,),
+        "decoder_map": (example.keyframe_patches,),
+        "decoder_track": example.track_args,
         "head_camera": hidden,
         "head_conf": hidden,
         "head_points": hidden,

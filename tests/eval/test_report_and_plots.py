@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from kvtracker_sdk.errors import EvaluationError, MissingDependencyError, TrajectoryError
-from kvtracker_sdk.eval.plots import plot_trajectory
+from kvtracker_sdk.eval.plots import break_at_gaps, plot_trajectory
 from kvtracker_sdk.eval.report import evaluate_trajectories
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.trajectory import Trajectory
@@ -107,3 +107,15 @@ def test_importing_the_eval_modules_loads_neither_matplotlib_nor_evo() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_lines_break_where_the_tracker_was_lost() -> None:
+    stamps = np.array([0.0, 0.1, 0.2, 0.3, 1.5, 1.6, 1.7, 3.0])  # two gaps (frames missing)
+    positions = np.arange(24, dtype=float).reshape(8, 3)
+    times, line = break_at_gaps(stamps, positions)
+    assert len(times) == len(line) == 10
+    gaps = np.flatnonzero(np.isnan(times))
+    assert gaps.tolist() == [4, 8] and np.isnan(line[gaps]).all()
+    np.testing.assert_array_equal(line[~np.isnan(times)], positions)
+    steady = np.arange(5) * 0.1  # no gap: unchanged
+    np.testing.assert_array_equal(break_at_gaps(steady, steady)[1], steady)

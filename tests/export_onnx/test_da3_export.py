@@ -16,12 +16,9 @@ from kvtracker_sdk.errors import ConfigError, ModelError
 from kvtracker_sdk.export_onnx import export_model, exporter
 from kvtracker_sdk.export_onnx.graph_def import GraphDef
 from kvtracker_sdk.models.da3 import DepthAnything3
+from tests.export_onnx.signatures import assert_graphs_declare_the_manifest
 from tests.helpers import shared_path
 from tests.models.da3.factories import random_da3, tiny_config
-
-
-def dims(value: onnx.ValueInfoProto) -> list[int | str]:
-    return [d.dim_param or d.dim_value for d in value.type.tensor_type.shape.dim]
 
 
 def test_manifest_identity_and_signatures(golden_da3_onnx_dir: Path) -> None:
@@ -34,14 +31,7 @@ def test_manifest_identity_and_signatures(golden_da3_onnx_dir: Path) -> None:
     assert manifest.cache_layout == torch_info.layout and manifest.extra_tokens_per_frame == 1
     assert len(manifest.check) == 8 and max(manifest.check.values()) < 1e-4
     assert tuple(manifest.graphs) == FAMILY_GRAPHS["da3"]
-    for name, spec in manifest.graphs.items():
-        graph = onnx.load(golden_da3_onnx_dir / spec.file, load_external_data=False).graph
-        assert [(i.name, dims(i)) for i in graph.input] == [
-            (s.name, list(s.shape)) for s in spec.inputs
-        ], name
-        assert [(o.name, dims(o)) for o in graph.output] == [
-            (s.name, list(s.shape)) for s in spec.outputs
-        ], name
+    assert_graphs_declare_the_manifest(golden_da3_onnx_dir, manifest)
     outputs = {s.name: s.shape for s in manifest.graphs["decoder_map"].outputs}
     assert outputs["camera_tokens"] == ("frames", 256)
     assert outputs["features.3"] == ("frames", "grid_h", "grid_w", 256)

@@ -34,7 +34,7 @@ from kvtracker_sdk.errors import CacheError, ImageShapeError
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy, select_reference_view
 from kvtracker_sdk.models.layers.attention import CacheBuffers, keyframe_query_mask
-from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 
@@ -142,21 +142,13 @@ class DA3Backbone(nn.Module):
         """Keyframes [B, N, 3, H, W] with view 0 as reference -> (output, keys, values)."""
         tokens, grid = self.embed_views(images)
         batch, views = tokens.shape[:2]
-        rope = self.global_rope(tokens).repeat(views)
-        keys: list[torch.Tensor] = []
-        values: list[torch.Tensor] = []
+        step = KVRecordingStep(self.global_rope(tokens).repeat(views))
 
         def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
             reference = torch.zeros(batch, dtype=torch.long, device=x.device)  # keyframe 0
             return self.learned_camera_tokens(reference, views), reference
 
-        def step(_: int, block: Block, x: torch.Tensor) -> torch.Tensor:
-            out, k, v = block.forward_map(x, rope=rope)
-            keys.append(k)
-            values.append(v)
-            return out
-
-        return self._run(tokens, grid, choose, step), keys, values
+        return self._run(tokens, grid, choose, step), step.keys, step.values
 
     def forward_track(self, images: torch.Tensor, cache: CacheBuffers) -> BackboneOutput:
         """Query views [F, 3, H, W] against ``cache`` -> output with leading dims [1, F].

@@ -18,7 +18,7 @@ from kvtracker_sdk.models.layers.mlp import Mlp
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.layers.swiglu import SwiGLUFFN
 
-__all__ = ["FFN_LAYERS", "Block"]
+__all__ = ["FFN_LAYERS", "Block", "KVRecordingStep"]
 
 # feed-forward variants by name: GELU MLP (every model but ViT-g) and SwiGLU (DINOv2 ViT-g/14)
 FFN_LAYERS: dict[str, type[Mlp] | type[SwiGLUFFN]] = {"mlp": Mlp, "swiglu": SwiGLUFFN}
@@ -99,3 +99,20 @@ class Block(nn.Module):
             self.norm1(x), key_buffer, value_buffer, past_length, rope=rope, attn_mask=attn_mask
         )
         return self._finish(x, attended)
+
+
+class KVRecordingStep:
+    """The global step of a mapping pass: ``Block.forward_map`` with one RoPE table, keeping
+    every global block's K/V in order (what a ``KVCache`` stores). Both families' mapping passes,
+    and the exported mapping graphs, run their global blocks through it."""
+
+    def __init__(self, rope: RopeTable | None) -> None:
+        self.rope = rope
+        self.keys: list[torch.Tensor] = []
+        self.values: list[torch.Tensor] = []
+
+    def __call__(self, ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
+        out, k, v = block.forward_map(x, rope=self.rope)
+        self.keys.append(k)
+        self.values.append(v)
+        return out

@@ -25,7 +25,7 @@ from torch import nn
 
 from kvtracker_sdk.errors import CacheError
 from kvtracker_sdk.models.layers.attention import CacheBuffers, keyframe_query_mask
-from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.pi3.config import Pi3DecoderConfig
 
@@ -88,17 +88,8 @@ class Pi3Decoder(nn.ModuleList):
         self, tokens: torch.Tensor, rope: RopeTable
     ) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
         """``forward`` plus per global block K (after k_norm and RoPE) and V, [B, heads, N*T, head_dim]."""
-        global_rope = rope.repeat(tokens.shape[1])
-        keys: list[torch.Tensor] = []
-        values: list[torch.Tensor] = []
-
-        def step(_: int, block: Block, x: torch.Tensor) -> torch.Tensor:
-            out, k, v = block.forward_map(x, rope=global_rope)
-            keys.append(k)
-            values.append(v)
-            return out
-
-        return self._run(tokens, rope, step), keys, values
+        step = KVRecordingStep(rope.repeat(tokens.shape[1]))
+        return self._run(tokens, rope, step), step.keys, step.values
 
     def forward_track(
         self, tokens: torch.Tensor, rope: RopeTable, cache: CacheBuffers
