@@ -4,18 +4,31 @@ Every writer in ``io/`` goes through :func:`atomic_write`: the data goes to a te
 the target's directory (so ``os.replace`` stays on one filesystem and is atomic), is flushed and
 fsync'ed, and only then replaces the target. A crash or an exception mid-write leaves the
 previous file untouched and removes the temporary one.
+
+A process killed mid-write cannot remove its temporary file. The next successful write of the
+same target removes such leftovers once they are older than ``STALE_TEMP_SECONDS`` (an hour): a
+concurrent writer's temporary file is being written, so it is always younger than that.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["atomic_path", "atomic_write"]
+__all__ = ["STALE_TEMP_SECONDS", "atomic_path", "atomic_write"]
+
+STALE_TEMP_SECONDS = 3600.0
+_TOKEN_BYTES = 6  # the temporary name's random part: 12 hex digits
+
+
+def _temporary_path(target: Path) -> Path:
+    return target.with_name(f".{target.name}.{secrets.token_hex(_TOKEN_BYTES)}.tmp")
 
 
 @contextlib.contextmanager
@@ -26,7 +39,7 @@ def atomic_write(path: str | os.PathLike[str], *, binary: bool = False) -> Itera
     The parent directory must exist.
     """
     target = Path(path)
-    tmp = target.with_name(f".{target.name}.{secrets.token_hex(6)}.tmp")
+    tmp = _temporary_path(target)
     # os.open with 0o666 lets the umask decide the final permissions, as for a plain open();
     # tempfile.mkstemp would leave the saved file readable by its owner only.
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
@@ -43,6 +56,7 @@ def atomic_write(path: str | os.PathLike[str], *, binary: bool = False) -> Itera
         tmp.unlink(missing_ok=True)
         raise
     _fsync_directory(target.parent)
+    _remove_stale_temporaries(target)
 
 
 @contextlib.contextmanager
@@ -54,7 +68,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     removed. The temporary name is hidden and ends in ``.tmp``, never in the target's suffix.
     """
     target = Path(path)
-    tmp = target.with_name(f".{target.name}.{secrets.token_hex(6)}.tmp")
+    tmp = _temporary_path(target)
     os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # reserve; umask applies
     mode = tmp.stat().st_mode & 0o777
     try:
@@ -72,6 +86,18 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
         raise
     _fsync_directory(target.parent)
+    _remove_stale_temporaries(target)
+
+
+def _remove_stale_temporaries(target: Path) -> None:
+    """Remove temporary files of ``target`` left by killed writers (see the module docstring)."""
+    pattern = re.compile(rf"\.{re.escape(target.name)}\.[0-9a-f]{{{2 * _TOKEN_BYTES}}}\.tmp")
+    cutoff = time.time() - STALE_TEMP_SECONDS
+    with contextlib.suppress(OSError):  # best effort: the save itself has succeeded
+        for entry in os.scandir(target.parent):
+            if pattern.fullmatch(entry.name) and entry.stat().st_mtime < cutoff:
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
 
 
 def _fsync_directory(directory: Path) -> None:

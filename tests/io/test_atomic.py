@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import pytest
 
-from kvtracker_sdk.io.atomic import atomic_write
+from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_path, atomic_write
 
 
 def test_text_and_binary_writes_replace_the_target(tmp_path: Path) -> None:
@@ -39,3 +40,24 @@ def test_permissions_follow_the_umask_like_a_plain_open(tmp_path: Path) -> None:
     (tmp_path / "plain.txt").write_text("x")
     mode = os.stat(tmp_path / "atomic.txt").st_mode & 0o777
     assert mode == os.stat(tmp_path / "plain.txt").st_mode & 0o777
+
+
+@pytest.mark.parametrize("writer", ["handle", "path"])
+def test_leftovers_of_killed_writers_are_removed_once_stale(tmp_path: Path, writer: str) -> None:
+    target = tmp_path / "room.kvmap"
+    stale = tmp_path / ".room.kvmap.0123456789ab.tmp"  # a writer killed two hours ago
+    fresh = tmp_path / ".room.kvmap.ba9876543210.tmp"  # a concurrent writer, still writing
+    other = tmp_path / ".other.kvmap.0123456789ab.tmp"  # another target's: not ours to remove
+    for leftover in (stale, fresh, other):
+        leftover.write_bytes(b"partial")
+    two_hours_ago = time.time() - 2 * STALE_TEMP_SECONDS
+    for old in (stale, other):
+        os.utime(old, (two_hours_ago, two_hours_ago))
+    if writer == "handle":
+        with atomic_write(target, binary=True) as handle:
+            handle.write(b"map")
+    else:
+        with atomic_path(target) as path:
+            path.write_bytes(b"map")
+    assert target.read_bytes() == b"map"
+    assert not stale.exists() and fresh.exists() and other.exists()
