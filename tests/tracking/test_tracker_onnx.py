@@ -22,7 +22,7 @@ from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError
 from kvtracker_sdk.tracking.tracker import Tracker
-from kvtracker_sdk.types import FrameResult
+from kvtracker_sdk.types import FrameResult, TrackingState
 from tests.helpers import shared_path
 
 CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 5}}
@@ -138,3 +138,27 @@ def test_swap_to_other_weights_is_refused(
         assert tracker.backend.info.backend == "onnx"  # unchanged, and still tracking
         assert tracker.push_frame(frames[1][1], timestamp=frames[1][0]).pose_valid
         tracker.backend.close()
+
+
+@pytest.mark.slow
+def test_a_map_saved_on_one_runtime_relocalises_on_the_other(
+    frames: list[tuple[float, np.ndarray]],
+    make_torch: Callable[[], TorchBackend],
+    make_onnx: Callable[[], OnnxBackend],
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "room.kvmap"
+    with Tracker(TrackerConfig.from_dict(CONFIG), make_torch()) as tracker:
+        for stamp, image in frames[:12]:
+            tracker.push_frame(image, timestamp=stamp)
+        tracker.save_map(path)
+        tracker.backend.close()
+    sessions = []
+    for make in (make_torch, make_onnx):  # the next session, on either runtime
+        backend = make()
+        with Tracker.from_map(path, backend) as tracker:
+            sessions.append([tracker.push_frame(image, timestamp=t) for t, image in frames[12:]])
+        backend.close()
+    on_torch, on_onnx = sessions
+    assert on_onnx[0].state is TrackingState.RELOCALIZING  # a loaded map relocalises first
+    assert_same_poses(on_onnx, on_torch)
