@@ -182,6 +182,10 @@ def test_folders_that_are_not_exports_are_refused(golden_onnx_dir: Path, tmp_pat
     (broken / "head_conf.onnx").unlink()
     with pytest.raises(ModelError, match="head_conf.onnx"):
         OnnxBackend(broken)
+    for family, message in (("nerf", "family 'nerf'"), ("da3", "no graph for .'head_depth'")):
+        (broken / "manifest.json").write_text(json.dumps({**manifest, "family": family}))
+        with pytest.raises(ModelError, match=message):  # a manifest naming another family
+            OnnxBackend(broken)
     manifest["format_version"] = 99
     (broken / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ModelError, match="version 99"):
