@@ -33,7 +33,13 @@ from kvtracker_sdk.errors import (
     WeightsNotFoundError,
 )
 
-__all__ = ["DEFAULT_FILENAME", "check_state_dict", "resolve_weights", "weights_fingerprint"]
+__all__ = [
+    "DEFAULT_FILENAME",
+    "StateDictShapes",
+    "check_state_dict",
+    "resolve_weights",
+    "weights_fingerprint",
+]
 
 DEFAULT_FILENAME = "model.safetensors"
 _REPO_ID = re.compile(r"^[A-Za-z0-9][\w.-]*/[\w.-]+$")
@@ -143,3 +149,27 @@ def weights_fingerprint(state_dict: Mapping[str, torch.Tensor]) -> str:
         digest.update(f"{key}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
         digest.update(tensor.reshape(-1).view(torch.uint8).numpy().data)
     return digest.hexdigest()
+
+
+class StateDictShapes:
+    """Reads an architecture off a checkpoint's tensor shapes (the families' ``from_state_dict``).
+
+    ``shape(key)`` is a tensor's shape (``CheckpointMismatchError`` naming the key when it is
+    absent); ``count(prefix)`` the number of indexed modules ``prefix{i}.*`` (0 if none).
+    """
+
+    def __init__(self, state_dict: Mapping[str, torch.Tensor], family: str) -> None:
+        self._state_dict = state_dict
+        self._family = family
+
+    def shape(self, key: str) -> tuple[int, ...]:
+        if key not in self._state_dict:
+            raise CheckpointMismatchError(
+                f"cannot infer a {self._family} config: key {key!r} is missing", missing=[key]
+            )
+        return tuple(self._state_dict[key].shape)
+
+    def count(self, prefix: str) -> int:
+        pattern = re.compile(rf"^{re.escape(prefix)}(\d+)\.")
+        indices = {int(m.group(1)) for key in self._state_dict if (m := pattern.match(key))}
+        return max(indices) + 1 if indices else 0

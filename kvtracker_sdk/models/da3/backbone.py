@@ -30,10 +30,14 @@ from typing import cast
 import torch
 from torch import nn
 
-from kvtracker_sdk.errors import CacheError, ImageShapeError
+from kvtracker_sdk.errors import ImageShapeError
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy, select_reference_view
-from kvtracker_sdk.models.layers.attention import CacheBuffers, keyframe_query_mask
+from kvtracker_sdk.models.layers.attention import (
+    CacheBuffers,
+    check_cache_buffers,
+    keyframe_query_mask,
+)
 from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
@@ -281,26 +285,11 @@ class DA3Backbone(nn.Module):
 
     def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
         """Raise ``CacheError`` unless every global layer has buffers of the right shape and dtype."""
-        expected = (1, self.num_heads, self.head_dim)
-        for ordinal, block_index in enumerate(self.global_block_indices):
-            try:
-                key_buffer, value_buffer = cache.buffers(ordinal)
-            except IndexError as exc:
-                raise CacheError(
-                    f"the cache has no layer {ordinal} (backbone block {block_index}); the model has "
-                    f"{len(self.global_block_indices)} global layers"
-                ) from exc
-            for buffer in (key_buffer, value_buffer):
-                if (
-                    buffer.dim() != 4
-                    or (buffer.shape[0], buffer.shape[1], buffer.shape[3]) != expected
-                ):
-                    raise CacheError(
-                        f"cache layer {ordinal}: buffer {tuple(buffer.shape)} does not fit "
-                        f"[1, {self.num_heads}, tokens, {self.head_dim}]"
-                    )
-                if buffer.dtype != dtype or buffer.device != device:
-                    raise CacheError(
-                        f"cache layer {ordinal} is {buffer.dtype} on {buffer.device}, the model computes "
-                        f"in {dtype} on {device}; convert it with cache.to(dtype=..., device=...)"
-                    )
+        check_cache_buffers(
+            cache,
+            block_indices=self.global_block_indices,
+            num_heads=self.num_heads,
+            head_dim=self.head_dim,
+            dtype=dtype,
+            device=device,
+        )

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
 from collections.abc import Mapping
 from typing import Literal
 
@@ -36,6 +35,7 @@ from pydantic import (
 )
 
 from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
+from kvtracker_sdk.models.checkpoint_utils import StateDictShapes
 from kvtracker_sdk.models.layers.swiglu import swiglu_hidden_dim
 
 __all__ = ["DA3BackboneConfig", "DA3CameraEncoderConfig", "DA3Config", "DA3HeadConfig"]
@@ -208,17 +208,8 @@ class DA3Config(_Section):
         a needed key is absent or the shapes are inconsistent.
         """
 
-        def shape(key: str) -> tuple[int, ...]:
-            if key not in state_dict:
-                raise CheckpointMismatchError(
-                    f"cannot infer a DA3 config: key {key!r} is missing", missing=[key]
-                )
-            return tuple(state_dict[key].shape)
-
-        def count(prefix: str) -> int:
-            pattern = re.compile(rf"^{re.escape(prefix)}(\d+)\.")
-            indices = {int(m.group(1)) for key in state_dict if (m := pattern.match(key))}
-            return max(indices) + 1 if indices else 0
+        shapes = StateDictShapes(state_dict, "DA3")
+        shape, count = shapes.shape, shapes.count
 
         vit = "backbone.pretrained."
         dim = shape(vit + "cls_token")[-1]

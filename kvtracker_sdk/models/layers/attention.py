@@ -33,10 +33,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.errors import CacheError, ConfigError
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 
-__all__ = ["Attention", "CacheBuffers", "keyframe_query_mask"]
+__all__ = ["Attention", "CacheBuffers", "check_cache_buffers", "keyframe_query_mask"]
 
 
 class CacheBuffers(Protocol):
@@ -53,6 +53,39 @@ class CacheBuffers(Protocol):
     def ensure_capacity(self, tokens: int) -> None: ...
 
     def buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+def check_cache_buffers(
+    cache: CacheBuffers,
+    *,
+    block_indices: tuple[int, ...],
+    num_heads: int,
+    head_dim: int,
+    dtype: torch.dtype,
+    device: torch.device,
+) -> None:
+    """Raise ``CacheError`` unless every cached layer (one per global block in
+    ``block_indices``) has K/V buffers [1, num_heads, tokens, head_dim] of ``dtype`` on ``device``."""
+    expected = (1, num_heads, head_dim)
+    for ordinal, block_index in enumerate(block_indices):
+        try:
+            key_buffer, value_buffer = cache.buffers(ordinal)
+        except IndexError as exc:
+            raise CacheError(
+                f"the cache has no layer {ordinal} (block {block_index}); the model has "
+                f"{len(block_indices)} global layers"
+            ) from exc
+        for buffer in (key_buffer, value_buffer):
+            if buffer.dim() != 4 or (buffer.shape[0], buffer.shape[1], buffer.shape[3]) != expected:
+                raise CacheError(
+                    f"cache layer {ordinal}: buffer {tuple(buffer.shape)} does not fit "
+                    f"[1, {num_heads}, tokens, {head_dim}]"
+                )
+            if buffer.dtype != dtype or buffer.device != device:
+                raise CacheError(
+                    f"cache layer {ordinal} is {buffer.dtype} on {buffer.device}, the model computes "
+                    f"in {dtype} on {device}; convert it with cache.to(dtype=..., device=...)"
+                )
 
 
 def keyframe_query_mask(

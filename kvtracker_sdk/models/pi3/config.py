@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
 from collections.abc import Mapping
 
 import torch
@@ -30,6 +29,7 @@ from pydantic import (
 )
 
 from kvtracker_sdk.errors import CheckpointMismatchError
+from kvtracker_sdk.models.checkpoint_utils import StateDictShapes
 
 __all__ = ["Pi3Config", "Pi3DecoderConfig", "Pi3EncoderConfig", "Pi3HeadsConfig"]
 
@@ -150,17 +150,8 @@ class Pi3Config(_Section):
         inconsistent.
         """
 
-        def shape(key: str) -> tuple[int, ...]:
-            if key not in state_dict:
-                raise CheckpointMismatchError(
-                    f"cannot infer a Pi3 config: key {key!r} is missing", missing=[key]
-                )
-            return tuple(state_dict[key].shape)
-
-        def count(prefix: str) -> int:
-            pattern = re.compile(rf"^{re.escape(prefix)}(\d+)\.")
-            indices = {int(m.group(1)) for key in state_dict if (m := pattern.match(key))}
-            return max(indices) + 1 if indices else 0
+        shapes = StateDictShapes(state_dict, "Pi3")
+        shape, count = shapes.shape, shapes.count
 
         dec_dim = shape("decoder.0.norm1.weight")[0]
         dec_heads = dec_dim // shape("decoder.0.attn.q_norm.weight")[0]
