@@ -15,11 +15,12 @@ runtime (torch/onnx), device or dtype.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import torch
 
 from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
 from kvtracker_sdk.types import HeadSet
@@ -76,6 +77,31 @@ class MapResult:
     @property
     def num_frames(self) -> int:
         return int(self.poses.shape[0])
+
+    @classmethod
+    def of_pass(
+        cls,
+        poses: np.ndarray,
+        confidence: np.ndarray | None,
+        local_points: np.ndarray | None,
+        keys: Sequence[torch.Tensor],
+        values: Sequence[torch.Tensor],
+        *,
+        info: BackendInfo,
+        image_size: tuple[int, int],
+        map_ms: float,
+    ) -> MapResult:
+        """A mapping pass's per-keyframe outputs (all heads) and the K/V of its global layers
+        [1, heads, N*T, head_dim] -> a ``MapResult`` whose cache lists keyframes 0..N-1."""
+        assert confidence is not None and local_points is not None  # mapping runs every head
+        cache = KVCache.from_layers(
+            list(keys),
+            list(values),
+            layout=info.layout,
+            tokens_per_frame=info.tokens_per_frame(*image_size),
+            keyframe_ids=range(poses.shape[0]),
+        )
+        return cls(poses, confidence, local_points, cache, timings_ms={"map": map_ms})
 
 
 @dataclass(frozen=True)

@@ -104,20 +104,15 @@ class OnnxBackend:
         check_masks(masks, images)
         start = time.perf_counter()
         outputs, keys, values = runner.map(frames)
-        cache = KVCache.from_layers(
+        return MapResult.of_pass(
+            outputs.poses,
+            outputs.confidence,
+            outputs.local_points,
             [torch.from_numpy(k) for k in keys],
             [torch.from_numpy(v) for v in values],
-            layout=self._info.layout,
-            tokens_per_frame=self._info.tokens_per_frame(*images.shape[1:3]),
-            keyframe_ids=range(images.shape[0]),
-        )
-        assert outputs.confidence is not None and outputs.local_points is not None  # all heads
-        return MapResult(
-            poses=outputs.poses,
-            confidence=outputs.confidence,
-            local_points=outputs.local_points,
-            cache=cache,
-            timings_ms={"map": (time.perf_counter() - start) * 1e3},
+            info=self._info,
+            image_size=images.shape[1:3],
+            map_ms=(time.perf_counter() - start) * 1e3,
         )
 
     def track(

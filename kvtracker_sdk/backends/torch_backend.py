@@ -32,15 +32,12 @@ import numpy as np
 import torch
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
+from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
 from kvtracker_sdk.backends.torch_families import FrameOutputs, TorchFamily, family_adapter
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import (
-    BackendMismatchError,
     ConfigError,
-    ImageDtypeError,
     ImageShapeError,
-    MaskError,
-    ResolutionChangedError,
     StateError,
 )
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
@@ -101,7 +98,6 @@ class TorchBackend:
         self._family: TorchFamily | None = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
-        self._layout = family.layout
         self._info = BackendInfo(
             backend="torch",
             model=model_name or architecture_name(model),
@@ -110,7 +106,7 @@ class TorchBackend:
             weights_fingerprint=fingerprint,
             patch_size=model.config.patch_size,
             extra_tokens_per_frame=family.extra_tokens_per_frame,
-            layout=self._layout,
+            layout=family.layout,
             dtype=str(compute_dtype).removeprefix("torch."),
             device=str(self._device),
             accelerations=_accelerations(self._device),
@@ -147,28 +143,20 @@ class TorchBackend:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
         family = self._live_family()
         frames = self._to_tensor(images)
-        if masks is not None and (masks.dtype != np.bool_ or masks.shape != images.shape[:3]):
-            raise MaskError(
-                f"masks must be bool {images.shape[:3]}, got {masks.dtype} {masks.shape}"
-            )
+        check_masks(masks, images)
         start = time.perf_counter()
         with torch.no_grad():
             mapped = family.map(frames)
-        cache = KVCache.from_layers(
+        outputs = mapped.frames
+        return MapResult.of_pass(
+            outputs.poses,
+            outputs.confidence,
+            outputs.local_points,
             mapped.keys,
             mapped.values,
-            layout=self._layout,
-            tokens_per_frame=mapped.tokens_per_frame,
-            keyframe_ids=range(frames.shape[0]),
-        )
-        outputs = mapped.frames
-        assert outputs.confidence is not None and outputs.local_points is not None  # map: all heads
-        return MapResult(
-            poses=outputs.poses,
-            confidence=outputs.confidence,
-            local_points=outputs.local_points,
-            cache=cache,
-            timings_ms={"map": (time.perf_counter() - start) * 1e3},
+            info=self._info,
+            image_size=images.shape[1:3],
+            map_ms=(time.perf_counter() - start) * 1e3,
         )
 
     def track(
@@ -187,7 +175,7 @@ class TorchBackend:
         """Track independent frames uint8 [B, H, W, 3] against ``cache`` in one pass."""
         family = self._live_family()
         frames = self._to_tensor(images)
-        self._check_cache(cache, frames.shape[-2], frames.shape[-1])
+        check_cache(cache, self._info, frames.shape[-2], frames.shape[-1])
         start = time.perf_counter()
         with cache.lock, torch.no_grad():
             output = family.track(frames, cache, heads)
@@ -213,44 +201,11 @@ class TorchBackend:
 
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""
-        if not isinstance(images, np.ndarray):
-            raise ImageDtypeError(
-                f"images must be a numpy uint8 array, got {type(images).__name__}"
-            )
-        if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] == 0:
-            raise ImageShapeError(
-                f"expected images [N, H, W, 3] with N >= 1, got shape {images.shape}"
-            )
-        if images.dtype != np.uint8:
-            raise ImageDtypeError(f"images must be uint8 RGB, got {images.dtype}")
-        height, width = images.shape[1:3]
-        patch = self._info.patch_size
-        if height % patch or width % patch or height < patch or width < patch:
-            raise ImageShapeError(
-                f"image size {height}x{width} is not a positive multiple of {patch}: resize it with "
-                "kvtracker_sdk.backends.preprocess.model_resolution / resize_image first"
-            )
+        images = check_frames(images, self._info.patch_size)
         # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
         writable = images if images.flags.writeable else images.copy()
         tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
         return tensor.permute(0, 3, 1, 2).float().div_(255.0)
-
-    def _check_cache(self, cache: KVCache, height: int, width: int) -> None:
-        if cache.layout != self._layout:
-            raise BackendMismatchError(
-                f"cache layout {cache.layout} does not match this model's {self._layout}"
-            )
-        if cache.dtype != self._live_family().compute_dtype or cache.device != self._device:
-            raise BackendMismatchError(
-                f"cache is {cache.dtype} on {cache.device}, the backend computes in {self._info.dtype} on "
-                f"{self._device}: convert it with cache.to(dtype=..., device=...)"
-            )
-        expected = self._info.tokens_per_frame(height, width)
-        if cache.tokens_per_frame != expected:
-            raise ResolutionChangedError(
-                f"the cache holds {cache.tokens_per_frame} tokens per keyframe but a {height}x{width} frame "
-                f"has {expected}: track at the keyframes' resolution"
-            )
 
     @staticmethod
     def _track_result(output: FrameOutputs, index: int, timings: dict[str, float]) -> TrackResult:
