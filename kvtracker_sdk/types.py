@@ -128,6 +128,10 @@ class MapStatus:
     generation: int  # increments on every accepted map rebuild (or load)
     rebuilding: bool  # a rebuild is running (asynchronous mapping)
     keyframe_ids: tuple[int, ...] = ()
+    # a keyframe candidate waits for the running rebuild (it starts when that one is installed)
+    keyframe_waiting: bool = False
+    # waiting candidates replaced by newer ones because a rebuild outlasted a keyframe interval
+    deferred_replaced: int = 0
 
 
 def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:

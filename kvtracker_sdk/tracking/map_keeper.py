@@ -8,11 +8,20 @@ what ``collect`` returns into state changes and events.
 
 Counters that outlive a map (keyframe ids, generations) never go back, so an id or a generation
 seen by an app always names one keyframe or one map.
+
+A candidate that arrives while a rebuild is pending (asynchronous mapping) is **deferred**, not
+dropped: it waits in one slot and its rebuild starts as soon as the pending one is collected (the
+first frame after the swap, or ``Tracker.wait_for_map``). The keyframe rules count from the last
+*proposed* candidate and judge novelty against proposed candidates too, so which frames become
+keyframes depends on the frames, not on how fast the mapping worker is — unless a rebuild takes
+longer than a whole keyframe interval (an overloaded machine): then a newer candidate replaces the
+waiting one, and ``MapStatus.deferred_replaced`` counts it. Rejections are timed from the
+candidate's own frame index for the same reason.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -22,6 +31,7 @@ from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import StateError
+from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import keyframes as policy
 from kvtracker_sdk.tracking.frame_input import PreparedFrame
 from kvtracker_sdk.tracking.map_builder import (
@@ -35,7 +45,17 @@ from kvtracker_sdk.types import MapStatus
 
 __all__ = ["MapKeeper"]
 
+_log = get_logger(__name__)
 _NEVER = -(10**12)
+
+
+@dataclass(frozen=True)
+class _Proposal:
+    """A frame proposed as a keyframe, with the pose it was judged at."""
+
+    frame: PreparedFrame
+    index: int
+    T_world_cam: np.ndarray
 
 
 class MapKeeper:
@@ -48,12 +68,17 @@ class MapKeeper:
         self.map: KeyframeMap | None = None
         self.generation = 0  # of the latest installed map; 0 before the first
         self._next_keyframe_id = 0
+        self._deferred_replaced = 0  # waiting candidates replaced by newer ones (overload)
         self._clear_counters()
 
     def _clear_counters(self) -> None:
-        self._last_keyframe_frame = _NEVER  # frame of the last accepted keyframe (this session)
+        self._last_accepted_frame = _NEVER  # frame of the last accepted keyframe (this session)
+        self._last_proposed_frame = _NEVER  # frame of the last candidate proposed (this session)
         self._retry_frame = _NEVER  # no candidate before this frame (after a rejection)
         self._centre: tuple[int, np.ndarray] | None = None  # (generation, object centre)
+        # candidates proposed but not in the installed map: the pending one, then the waiting one
+        self._in_flight: tuple[_Proposal, ...] = ()
+        self._waiting: _Proposal | None = None
 
     @property
     def rebuilding(self) -> bool:
@@ -62,14 +87,18 @@ class MapKeeper:
 
     def status(self) -> MapStatus:
         kf_map, rebuilding = self.map, self._mapper.pending
+        waiting, replaced = self._waiting is not None, self._deferred_replaced
         if kf_map is None:
-            return MapStatus(0, 0, 0, rebuilding)
+            return MapStatus(0, 0, 0, rebuilding, keyframe_waiting=waiting,
+                             deferred_replaced=replaced)
         return MapStatus(
             kf_map.num_keyframes,
             kf_map.cache.nbytes,
             kf_map.generation,
             rebuilding,
             kf_map.keyframe_ids,
+            keyframe_waiting=waiting,
+            deferred_replaced=replaced,
         )
 
     # ------------------------------------------------------------------ whole maps
@@ -101,9 +130,13 @@ class MapKeeper:
 
     # ------------------------------------------------------------------ keyframes
     def wants_keyframe(self, T_world_cam: np.ndarray, index: int) -> bool:
-        """Whether the confidently tracked frame ``index`` at ``T_world_cam`` should be proposed."""
+        """Whether the confidently tracked frame ``index`` at ``T_world_cam`` should be proposed.
+
+        Judged against the installed map *and* the candidates already proposed (pending or
+        waiting), so the answer does not depend on whether their rebuilds have finished yet.
+        """
         kf_map = self.map
-        if kf_map is None or self._mapper.pending or index < self._retry_frame:
+        if kf_map is None or index < self._retry_frame:
             return False
         capacity = self._budget.capacity(kf_map.cache.bytes_per_keyframe())
         if capacity is not None and capacity < 2:
@@ -111,13 +144,32 @@ class MapKeeper:
         keyframing = self._config.keyframing
         if self._config.mode is TrackingMode.SCENE:
             return policy.interval_elapsed(
-                index, self._last_keyframe_frame, keyframing.interval_frames
+                index, self._last_proposed_frame, keyframing.interval_frames
             )
         if self._centre is None or self._centre[0] != kf_map.generation:
             self._centre = (kf_map.generation, policy.object_centre(kf_map.keyframes))
-        return policy.novel_view(
-            T_world_cam, kf_map.poses(), self._centre[1], keyframing.view_angle_deg
-        )
+        proposed = [p.T_world_cam for p in self._proposals()]
+        poses = np.concatenate([kf_map.poses(), np.asarray(proposed).reshape(-1, 4, 4)])
+        return policy.novel_view(T_world_cam, poses, self._centre[1], keyframing.view_angle_deg)
+
+    def _proposals(self) -> tuple[_Proposal, ...]:
+        return self._in_flight + ((self._waiting,) if self._waiting is not None else ())
+
+    def propose(
+        self, backend: Backend, frame: PreparedFrame, index: int, T_world_cam: np.ndarray
+    ) -> int | None:
+        """Propose the frame as a keyframe: its rebuild starts now (returns the candidate's id),
+        or, while another rebuild is pending, it waits for that one (returns None)."""
+        proposal = _Proposal(frame, index, np.asarray(T_world_cam, dtype=np.float64))
+        self._last_proposed_frame = index
+        if not self._mapper.pending:
+            return self._start_keyframe(backend, proposal)
+        if self._waiting is not None:
+            self._deferred_replaced += 1
+            _log.warning("keyframe candidate replaced while waiting for a slow rebuild",
+                         replaced_frame=self._waiting.index, frame_index=index)
+        self._waiting = proposal
+        return None
 
     def start_bootstrap(
         self, backend: Backend, frame: PreparedFrame, index: int, cause: str
@@ -125,14 +177,15 @@ class MapKeeper:
         """Start the first map (or a new one): ``frame`` becomes keyframe 0."""
         self._start(backend, None, (), frame, index, cause)
 
-    def start_keyframe(self, backend: Backend, frame: PreparedFrame, index: int) -> int:
-        """Start a rebuild adding ``frame`` (evicting to fit the budget); the candidate's id."""
+    def _start_keyframe(self, backend: Backend, proposal: _Proposal) -> int:
+        """Start a rebuild adding ``proposal`` (evicting to fit the budget); the candidate's id."""
         kf_map = self.map
         if kf_map is None:
             raise StateError("no map to add a keyframe to")
         evicted = self._budget.select_evictions(kf_map.keyframes, kf_map.cache.bytes_per_keyframe())
         keep = tuple(kf for kf in kf_map.keyframes if kf.keyframe_id not in evicted)
-        return self._start(backend, kf_map, keep, frame, index, "keyframe", evicted)
+        self._in_flight = (proposal,)
+        return self._start(backend, kf_map, keep, proposal.frame, proposal.index, "keyframe", evicted)
 
     def _start(
         self,
@@ -148,6 +201,7 @@ class MapKeeper:
             self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask
         )
         self._next_keyframe_id += 1
+        self._last_proposed_frame = max(self._last_proposed_frame, index)  # bootstraps count too
         request = RebuildRequest(previous, keep, evicted, candidate, cause, self.generation + 1)
         self._mapper.submit(
             partial(
@@ -160,20 +214,35 @@ class MapKeeper:
         )
         return candidate.keyframe_id
 
-    def collect(self, index: int, *, timeout: float | None = 0.0) -> RebuildOutcome | None:
-        """Install a finished rebuild if accepted (or note its rejection at frame ``index``).
+    def collect(
+        self, backend: Backend, index: int, *, timeout: float | None = 0.0
+    ) -> RebuildOutcome | None:
+        """Install a finished rebuild if accepted (or note its rejection), then start the waiting
+        candidate's rebuild, if any, on ``backend``. ``index`` is the current frame.
 
         Returns the outcome, or None when no rebuild finished within ``timeout`` seconds.
         """
-        outcome = self._mapper.take(timeout=timeout)
+        try:
+            outcome = self._mapper.take(timeout=timeout)
+        except Exception:
+            # the pass failed: its candidate never existed, so the next frame may propose again
+            self._in_flight, self._last_proposed_frame = (), self._last_accepted_frame
+            raise
         if outcome is None:
             return None
+        self._in_flight = ()
+        candidate_frame = outcome.request.candidate.frame_index
         if outcome.accepted:
             self.map = outcome.new_map  # the atomic swap: readers see the old map or the new one
             self.generation = outcome.new_map.generation
-            self._last_keyframe_frame = outcome.request.candidate.frame_index
+            self._last_accepted_frame = candidate_frame
         else:
-            self._retry_frame = index + self._config.rejection.retry_after_frames
+            # timed from the candidate's frame (not from when the worker finished): deterministic
+            self._retry_frame = candidate_frame + self._config.rejection.retry_after_frames
+            self._last_proposed_frame = self._last_accepted_frame
+        waiting, self._waiting = self._waiting, None
+        if waiting is not None and self.map is not None and waiting.index >= self._retry_frame:
+            self._start_keyframe(backend, waiting)
         return outcome
 
     def close(self) -> None:

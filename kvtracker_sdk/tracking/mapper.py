@@ -34,6 +34,7 @@ class Mapper(Generic[T]):
             else None
         )
         self._pending: Future[T] | None = None
+        self._closed = False
 
     @property
     def pending(self) -> bool:
@@ -48,6 +49,8 @@ class Mapper(Generic[T]):
 
     def submit(self, job: Callable[[], T]) -> None:
         """Start ``job``; inline it runs to completion before this returns."""
+        if self._closed:
+            raise StateError("the mapper is closed")
         if self._pending is not None:
             raise StateError("a map rebuild is already pending; take() its result first")
         if self._executor is None:
@@ -79,6 +82,7 @@ class Mapper(Generic[T]):
 
     def close(self) -> None:
         """Stop the worker after its current job (idempotent)."""
+        self._closed = True
         self._pending = None
         if self._executor is not None:
             self._executor.shutdown(wait=True, cancel_futures=True)

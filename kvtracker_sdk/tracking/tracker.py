@@ -203,7 +203,7 @@ class Tracker:
                 f"layout {new.layout})"
             )
         with self._call():
-            self._collect(max(self._frames - 1, 0), {}, timeout=None)  # made by the old backend
+            self._settle(timeout=None)  # rebuilds made by the old backend
             self._keeper.convert_cache(new.dtype, new.device)
             previous, self._backend, self._owns_backend = self._backend, backend, False
         return previous
@@ -223,10 +223,10 @@ class Tracker:
         return persistence.export_trajectory(self._settled_map(), path)
 
     def wait_for_map(self, timeout: float | None = None) -> bool:
-        """Wait for a pending rebuild and install it; True when none is pending any more."""
+        """Wait for pending rebuilds (and a keyframe waiting for one) and install them; True when
+        none is pending any more, False if ``timeout`` seconds passed first."""
         with self._call():
-            self._collect(max(self._frames - 1, 0), {}, timeout=timeout)
-        return not self._keeper.rebuilding
+            return self._settle(timeout)
 
     def close(self) -> None:
         """Stop the mapping worker (and close a backend this tracker created). Idempotent."""
@@ -302,9 +302,14 @@ class Tracker:
             return None, False, confidence, None
         valid = self.state is _S.TRACKING and verdict.confident
         if valid and self._keeper.wants_keyframe(pose.T_world_cam, index):
-            keyframe_id = self._keeper.start_keyframe(self._backend, frame, index)
-            outcome = self._collect(index, timings)
-            if outcome is not None and outcome.accepted and self._keeper.map is not None:
+            keyframe_id = self._keeper.propose(self._backend, frame, index, pose.T_world_cam)
+            outcome = self._collect(index, timings) if keyframe_id is not None else None
+            if (
+                outcome is not None
+                and outcome.accepted
+                and self._keeper.map is not None
+                and outcome.request.candidate.keyframe_id == keyframe_id
+            ):
                 keyframe = self._keeper.map.keyframe(keyframe_id)
                 return Pose(keyframe.T_world_cam), True, confidence, keyframe_id
         return pose, valid, confidence, None
@@ -346,7 +351,7 @@ class Tracker:
         self, index: int, timings: dict[str, float], *, timeout: float | None = 0.0
     ) -> RebuildOutcome | None:
         """Take a finished rebuild (installed by the keeper if accepted) and queue its events."""
-        outcome = self._keeper.collect(index, timeout=timeout)
+        outcome = self._keeper.collect(self._backend, index, timeout=timeout)
         if outcome is None:
             return None
         timings["map"] = outcome.map_ms
@@ -379,8 +384,19 @@ class Tracker:
     def _settled_map(self) -> KeyframeMap | None:
         """The map once a pending rebuild is installed (not for callers holding the lock)."""
         with self._call():
-            self._collect(max(self._frames - 1, 0), {}, timeout=None)
+            self._settle(timeout=None)
             return self._keeper.map
+
+    def _settle(self, timeout: float | None) -> bool:
+        """Collect rebuilds until none is pending (a collected one may start the waiting
+        keyframe's); True when settled within ``timeout`` seconds (None: however long it takes)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        index = max(self._frames - 1, 0)
+        while self._keeper.rebuilding:
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            if self._collect(index, {}, timeout=left) is None:
+                return False  # timed out
+        return True
 
     def _drop_map(self) -> None:
         self._keeper.drop()

@@ -54,7 +54,7 @@ if stall:  # the temporary file's fsync is the last step before os.replace
     def stalled_fsync(fd):
         real_fsync(fd)
         print("fsynced", flush=True)
-        time.sleep(600)
+        time.sleep(600)  # not synchronisation: holds the child here until the parent kills it
     os.fsync = stalled_fsync
 print("saving", flush=True)
 save_map(target, big, tracker_config_json=TRACKER_CONFIG, mode="object",
@@ -129,14 +129,21 @@ def test_kill_at_random_moments_leaves_old_or_new_map(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     stages = []
     new = make_map(**BIG)  # type: ignore[arg-type]
-    # run 0 stops within 5 ms of the temporary file appearing (mid-write, as the 76 MB write takes
-    # longer); run 1 anywhere in the next half second (any stage; the assertions cover each)
-    for run, window in enumerate((0.005, 0.5)):
+    # The first runs stop the child within 5 ms of its temporary file appearing (mid-write, as the
+    # 76 MB write takes longer), until one lands mid-write: on a loaded machine the parent may be
+    # descheduled past the write, which is still a valid stage, only not the one wanted here. The
+    # last run stops anywhere in the next half second (any stage; the assertions cover each).
+    windows = [0.005] * 5 + [0.5]
+    for run, window in enumerate(windows):
+        if window < 0.5 and "mid-write" in stages:
+            continue
         folder = tmp_path / f"run{run}"
         folder.mkdir()
         target, old = save_old(folder)
         child = start_child(target, stall=False)
         deadline = time.monotonic() + 60
+        # Not synchronisation: polling for the child's temporary file (no event to wait on in
+        # another process), then a random delay — the kill moments are what this test samples.
         while not temporaries(folder) and child.poll() is None and time.monotonic() < deadline:
             time.sleep(0.0002)
         time.sleep(float(rng.uniform(0.0, window)))
@@ -147,7 +154,7 @@ def test_kill_at_random_moments_leaves_old_or_new_map(tmp_path: Path) -> None:
         loaded = load_map(target).keyframe_map
         assert maps_equal(loaded, new if stage == "replaced" else old), stage
         assert_no_stray_map(folder)
-    assert stages[0] == "mid-write", stages
+    assert "mid-write" in stages, stages
 
 
 @pytest.mark.parametrize(

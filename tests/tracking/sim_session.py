@@ -17,11 +17,12 @@ from kvtracker_sdk.tracking.events import (
     StateChangeEvent,
 )
 from kvtracker_sdk.tracking.tracker import Tracker
-from kvtracker_sdk.types import FrameResult
+from kvtracker_sdk.types import FrameResult, TrackingState
 
 # Rendering at the model resolution of d = 224 for 4:3 frames (182 x 252) skips the resize, and
 # flat (untextured) frames cost ~nothing: the whole 3,000-frame TUM run takes a few seconds.
 SIZE = (182, 252)
+WAIT_S = 120.0  # generous: a worker that never finishes fails the test instead of hanging it
 
 
 def make_tracker(backend: SimulatedBackend, **config: Any) -> Tracker:
@@ -72,15 +73,23 @@ def drive(
     stop: int | None = None,
     session: Session | None = None,
     settle: bool = False,
+    pace: bool = False,
     with_mask: bool = False,
 ) -> Session:
-    """Push frames ``start:stop`` of the backend's trajectory; ``settle`` waits for every
-    asynchronous rebuild after each frame (deterministic keyframe timing)."""
+    """Push frames ``start:stop`` of the backend's trajectory.
+
+    With asynchronous mapping, ``settle`` waits for every rebuild after each frame (maps swap at
+    known frames). ``pace`` lets rebuilds run beside the frame loop but waits for the mapper where
+    a slow worker would change the outcome: while the first map is building (frames would get no
+    pose) and when a keyframe candidate is waiting (a newer one would replace it). The keyframes
+    are then those of synchronous mapping, on any machine, at any load.
+    """
     session = session if session is not None else Session().listen(tracker)
     for frame in backend.frames(SIZE, start=start, stop=stop, textured=False, with_mask=with_mask):
         result = tracker.push_frame(frame.image, timestamp=frame.timestamp, mask=frame.mask)
         session.results.append(result)
         session.truth.append(frame.T_world_cam)
-        if settle:
-            tracker.wait_for_map(timeout=30)
+        waiting = result.state is TrackingState.MAPPING or tracker.map_status.keyframe_waiting
+        if settle or (pace and waiting):
+            assert tracker.wait_for_map(timeout=WAIT_S), "the mapping worker did not finish"
     return session

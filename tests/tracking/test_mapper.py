@@ -60,7 +60,23 @@ def test_one_job_at_a_time_and_discard() -> None:
     assert mapper.take() == 3
 
 
-def test_close_is_idempotent() -> None:
+def test_close_waits_for_the_running_job_and_is_idempotent() -> None:
     mapper: Mapper[int] = Mapper(asynchronous=True)
-    mapper.close()
-    mapper.close()
+    started, release, finished = threading.Event(), threading.Event(), threading.Event()
+
+    def job() -> int:
+        started.set()
+        release.wait(120)
+        finished.set()
+        return 1
+
+    mapper.submit(job)
+    assert started.wait(120)
+    closer = threading.Thread(target=mapper.close)
+    closer.start()
+    release.set()
+    closer.join(timeout=120)
+    assert not closer.is_alive() and finished.is_set() and not mapper.pending
+    mapper.close()  # a second close returns at once
+    with pytest.raises(StateError, match="closed"):  # nothing runs after close
+        mapper.submit(lambda: 2)

@@ -17,8 +17,6 @@ import numpy as np
 import pytest
 import torch
 
-from kvtracker_sdk.backends.base import MapResult
-from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import (
@@ -31,12 +29,13 @@ from kvtracker_sdk.errors import (
 )
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
 from kvtracker_sdk.io import map_file
-from kvtracker_sdk.io.map_file import load_map, read_map_info
+from kvtracker_sdk.io.map_file import MapInfo, load_map, read_map_info
 from kvtracker_sdk.io.trajectory import read_tum
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import StateReason, TrackingState
 from tests.helpers import dev_dependency
 from tests.io.map_factory import map_digest
+from tests.tracking.gated_backend import GatedBackend
 from tests.tracking.saved_maps import (
     SIM,
     Saved,
@@ -45,7 +44,7 @@ from tests.tracking.saved_maps import (
     save_simulated_session,
     sim_backend,
 )
-from tests.tracking.sim_session import SIZE, Session, drive, make_tracker
+from tests.tracking.sim_session import SIZE, WAIT_S, Session, drive, make_tracker
 
 _S, _R = TrackingState, StateReason
 
@@ -225,23 +224,9 @@ def test_initialize_with_a_map_relocalises_a_running_tracker(sim_saved: Saved) -
 
 
 # ---------------------------------------------------------------------------------- saving
-class _GatedBackend(SimulatedBackend):
-    """Holds every mapping pass after the first one until ``gate`` is set."""
-
-    def __init__(self) -> None:
-        super().__init__(orbit(**SIM["orbit"]), **SIM["options"])
-        self.gate = threading.Event()
-        self.passes = 0
-
-    def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
-        self.passes += 1
-        if self.passes > 1:
-            self.gate.wait(timeout=60)
-        return super().map(images, masks)
-
-
 def test_save_map_refuses_without_a_map_and_waits_for_a_pending_rebuild(tmp_path: Path) -> None:
-    backend = _GatedBackend()
+    backend = GatedBackend(orbit(**SIM["orbit"]), **SIM["options"])
+    backend.hold(2)  # keyframe 1's mapping pass waits until the test releases it
     path = tmp_path / "scene.kvmap"
     config = {"threading": {"async_mapping": True}, "keyframing": {"interval_frames": 10}}
     with make_tracker(backend, **config) as tracker:
@@ -250,16 +235,24 @@ def test_save_map_refuses_without_a_map_and_waits_for_a_pending_rebuild(tmp_path
         with pytest.raises(StateError, match="no map"):
             tracker.export_trajectory(tmp_path / "keyframes.txt")
         assert os.listdir(tmp_path) == []
-        for frame in backend.frames(SIZE, stop=200, textured=False):
+        frames = backend.frames(SIZE, stop=12, textured=False)
+        tracker.push_frame(next(frames).image)
+        assert tracker.wait_for_map(timeout=WAIT_S)  # the first map (pass 1) is installed
+        for frame in frames:  # frame 10 proposes keyframe 1: pass 2, held at the gate
             tracker.push_frame(frame.image)
-            status = tracker.map_status
-            if status.rebuilding and status.keyframe_ids == (0,):
-                break  # keyframe 1's rebuild is held at the gate
+        assert backend.started(2)
+        status = tracker.map_status
         assert status.rebuilding and status.keyframe_ids == (0,)
-        threading.Timer(0.1, backend.gate.set).start()
-        info = tracker.save_map(path)
-        assert not tracker.map_status.rebuilding
-    assert info.keyframe_ids == (0, 1) and read_map_info(path).keyframe_ids == (0, 1)
+
+        saved: list[MapInfo] = []
+        saver = threading.Thread(target=lambda: saved.append(tracker.save_map(path)))
+        saver.start()
+        saver.join(timeout=0.2)  # not synchronisation: only shows the save is still waiting
+        assert saver.is_alive() and not path.exists()
+        backend.release(2)
+        saver.join(timeout=WAIT_S)
+        assert not saver.is_alive() and not tracker.map_status.rebuilding
+    assert saved[0].keyframe_ids == (0, 1) and read_map_info(path).keyframe_ids == (0, 1)
 
 
 def test_a_failed_save_keeps_the_previous_map(
