@@ -25,6 +25,7 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   ├── WeightsNotFoundError         weights not found / hub unreachable (says how to pass a file)
     │   └── CheckpointMismatchError      missing / unexpected / wrongly shaped keys (lists them)
     ├── CacheError                       KV cache misuse (layout, capacity, unknown keyframe)
+    ├── OutputError                      an output file or folder cannot be written (also OSError)
     ├── BackendError
     │   ├── BackendMismatchError         fingerprints or cache layouts disagree
     │   └── MissingDependencyError       an optional extra is not installed (names it)
@@ -61,6 +62,7 @@ __all__ = [
     "MissingDependencyError",
     "ModelError",
     "NonFiniteImageError",
+    "OutputError",
     "ResolutionChangedError",
     "SourceError",
     "StateError",
@@ -155,6 +157,11 @@ class CheckpointMismatchError(ModelError):
 
 class CacheError(KVTrackerError, ValueError):
     """The KV cache was used inconsistently (layout, capacity, unknown keyframe)."""
+
+
+class OutputError(KVTrackerError, OSError):
+    """An output file or folder cannot be written (missing folder, no permission, a folder
+    where a file should go, disk full)."""
 
 
 class BackendError(KVTrackerError):

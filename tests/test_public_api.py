@@ -96,6 +96,7 @@ PUBLIC_API = [
     "ModelError",
     "NonFiniteImageError",
     "OnnxBackend",
+    "OutputError",
     "Pose",
     "ResolutionChangedError",
     "Sim3",

@@ -46,11 +46,12 @@ EXIT_CODES: dict[int, str] = {
     ExitCode.INPUT: "unusable input (frames, masks, box, trajectory file)",
     ExitCode.WEIGHTS: "weights not found or not matching the model",
     ExitCode.DEPENDENCY: "an optional extra is missing (pip install 'kvtracker-sdk[...]')",
-    ExitCode.MAP: "map file error",
+    ExitCode.MAP: "map file error (--load-map or map info: missing, not a map, another model)",
     ExitCode.EVALUATION: "trajectories cannot be compared",
     ExitCode.CONFIG: "invalid configuration",
     ExitCode.BACKEND: "backend error or backend mismatch",
-    ExitCode.OUTPUT: "the outputs cannot be written (permissions, disk full)",
+    ExitCode.OUTPUT: "an output cannot be written (--out, --save-map, --rerun: missing folder, "
+    "permissions, disk full)",
     ExitCode.INTERRUPTED: "interrupted (outputs of the processed frames are written)",
 }
 
@@ -99,6 +100,11 @@ _CODES: tuple[tuple[type[BaseException], ExitCode, str], ...] = (
         ExitCode.MAP,
         "inspect the file with `kvtracker map info PATH`; a map loads only with the weights "
         "that made it",
+    ),
+    (
+        errors.OutputError,
+        ExitCode.OUTPUT,
+        "choose an output path in an existing folder you can write to (checked before the run)",
     ),
     (errors.ConfigError, ExitCode.CONFIG, "see `kvtracker COMMAND --help` for valid values"),
     (
