@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TypeAlias
 
 import numpy as np
@@ -27,6 +26,7 @@ import numpy as np
 from kvtracker_sdk.errors import TrajectoryError
 from kvtracker_sdk.geometry.se3 import quat_xyzw_from_rotation, rotation_from_quat_xyzw
 from kvtracker_sdk.io.atomic import atomic_write
+from kvtracker_sdk.io.regular_file import read_regular_text
 
 __all__ = [
     "Trajectory",
@@ -146,10 +146,8 @@ def write_kitti(path: PathLike, trajectory: Trajectory) -> None:
 
 def _data_lines(path: PathLike) -> list[tuple[int, list[str]]]:
     """(line number, fields) of every non-blank, non-comment line."""
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")  # -sig: tolerate a BOM
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(f"cannot read trajectory file {path}: {exc}") from exc
+    # a FIFO or a device would block or never end: only a regular file is read
+    text = read_regular_text(path, TrajectoryError, what="trajectory file")
     lines = []
     for number, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
