@@ -19,9 +19,13 @@ import typer
 
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.logging_setup import CliState
-from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.cli.output_checks import check_output_file
+from kvtracker_sdk.errors import ConfigError, MissingDependencyError
+from kvtracker_sdk.log import get_logger
 
 __all__ = ["AlignChoice", "evaluate", "register"]
+
+_log = get_logger(__name__)
 
 
 class AlignChoice(str, enum.Enum):
@@ -73,19 +77,28 @@ def evaluate(
 
     state: CliState = ctx.find_root().obj
     thresholds = _thresholds(cm_deg)
+    estimate, reference = read_trajectory(est), read_trajectory(gt)
+    target = None if no_plot else plot or est.with_name(f"{est.stem}_eval.png")
+    for path, option in ((target, "--plot"), (json_path, "--json")):
+        if path is not None:
+            check_output_file(path, option)
     report = evaluate_trajectories(
-        read_trajectory(est), read_trajectory(gt), max_diff=max_diff, offset=offset,
+        estimate, reference, max_diff=max_diff, offset=offset,
         alignment=align.value, delta=delta, all_pairs=all_pairs, cm_degree_thresholds=thresholds,
     )
     written = []
-    if not no_plot:
-        target = plot or est.with_name(f"{est.stem}_eval.png")
-        plot_trajectory(
-            target, report.aligned_estimate, report.association.ref,
-            translation_errors=report.ate.translation_errors,
-            title=f"{est.name} vs {gt.name}: ATE RMSE {report.ate.translation.rmse:.4f}",
-        )
-        written.append(target)
+    if target is not None:
+        try:
+            plot_trajectory(
+                target, report.aligned_estimate, report.association.ref,
+                translation_errors=report.ate.translation_errors,
+                title=f"{est.name} vs {gt.name}: ATE RMSE {report.ate.translation.rmse:.4f}",
+                # only a Sim(3) alignment brings the estimate to the reference's (metric) scale
+                units="m" if align is AlignChoice.SIM3 else None,
+            )
+            written.append(target)
+        except MissingDependencyError as error:  # the numbers matter more than the plot
+            _log.warning("plot not written", reason=str(error))
     if json_path is not None:
         with atomic_write(json_path) as handle:
             json.dump({"estimate": str(est), "reference": str(gt), **report.to_dict()}, handle,

@@ -38,13 +38,16 @@ def plot_trajectory(
     *,
     translation_errors: np.ndarray | None = None,
     title: str | None = None,
-    units: str = "m",
+    units: str | None = None,
 ) -> Path:
     """Write a PNG plot of ``estimate`` (and ``reference``) to ``path``; returns the path.
 
     Pass an estimate already aligned to the reference (``EvaluationReport.aligned_estimate``)
     for the two to overlap. ``translation_errors`` ([N], one per estimated pose, e.g.
     ``ATEResult.translation_errors``) adds an error-over-time panel. Written atomically.
+    ``units`` names the length unit of the axes (``"m"`` once a Sim(3) alignment has scaled the
+    estimate onto a metric reference); None, the default, labels them as of arbitrary scale, as
+    a monocular trajectory is.
     """
     if len(estimate) == 0:
         raise TrajectoryError("cannot plot an empty trajectory")
@@ -65,7 +68,7 @@ def plot_trajectory(
         times, errors = break_at_gaps(estimate.stamps, translation_errors)
         ax.plot(times - estimate.stamps[0], errors, color="tab:red", lw=1)
         ax.set_xlabel("time [s]")
-        ax.set_ylabel(f"translation error [{units}]")
+        ax.set_ylabel(f"translation error {_unit_label(units)}")
         ax.set_title("error over time")
         ax.grid(True, alpha=0.3)
     if title:
@@ -92,7 +95,8 @@ def break_at_gaps(
 
 
 def _plot_plane(
-    ax: Any, estimate: Trajectory, reference: Trajectory | None, i: int, j: int, units: str
+    ax: Any, estimate: Trajectory, reference: Trajectory | None, i: int, j: int,
+    units: str | None,
 ) -> None:
     if reference is not None and len(reference):
         ref = reference.positions
@@ -101,11 +105,15 @@ def _plot_plane(
     _, line = break_at_gaps(estimate.stamps, est)
     ax.plot(line[:, i], line[:, j], color="tab:blue", lw=1.2, label="estimate")
     ax.scatter(est[:1, i], est[:1, j], color="tab:green", s=25, zorder=3, label="start")
-    ax.set_xlabel(f"{_AXIS_NAMES[i]} [{units}]")
-    ax.set_ylabel(f"{_AXIS_NAMES[j]} [{units}]")
+    ax.set_xlabel(f"{_AXIS_NAMES[i]} {_unit_label(units)}")
+    ax.set_ylabel(f"{_AXIS_NAMES[j]} {_unit_label(units)}")
     ax.set_title(f"{_AXIS_NAMES[i]}-{_AXIS_NAMES[j]}")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
+
+
+def _unit_label(units: str | None) -> str:
+    return f"[{units}]" if units else "[arbitrary scale]"
 
 
 def _matplotlib() -> tuple[Any, Any]:
