@@ -8,15 +8,20 @@
 Each command module exposes ``register(app)``; a group added later (``export_onnx``, with the
 ONNX issue) is registered as soon as its module exists. Command modules import the tracker,
 torch and OpenCV inside their functions, so ``kvtracker --help`` stays fast.
+
+The global options (``-v``, ``-q``, ``--log-json``) may also follow the command
+(``kvtracker track ... -v``): :class:`_GlobalOptionsFirst` moves them in front of it.
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
-from typing import Annotated
+import re
+from typing import Annotated, Any
 
 import typer
+from typer.core import TyperGroup
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG
@@ -26,9 +31,23 @@ __all__ = ["app", "main"]
 
 _COMMAND_MODULES = ("track", "demo", "evaluate", "map_cmd")
 _OPTIONAL_COMMAND_MODULES = ("export_onnx",)  # present once the ONNX export issue lands
+_GLOBAL_FLAGS = re.compile(r"-v+|-q+|--verbose|--quiet|--log-json")
+
+
+class _GlobalOptionsFirst(TyperGroup):
+    """Click parses a group's options only before the command name: this moves the global
+    flags found after it (up to a ``--``) to the front, where the app callback reads them."""
+
+    def parse_args(self, ctx: Any, args: list[str]) -> list[str]:  # typer's vendored Context
+        end = args.index("--") if "--" in args else len(args)
+        flags = [a for a in args[:end] if _GLOBAL_FLAGS.fullmatch(a)]
+        rest = [a for a in args[:end] if not _GLOBAL_FLAGS.fullmatch(a)]
+        return super().parse_args(ctx, flags + rest + args[end:])
+
 
 app = typer.Typer(
     name="kvtracker",
+    cls=_GlobalOptionsFirst,
     help="Real-time monocular camera and object tracking with KV-cached transformers.",
     epilog=EXIT_CODES_EPILOG,
     no_args_is_help=True,
@@ -56,7 +75,10 @@ def _global_options(
         "--version", callback=_show_version, is_eager=True, help="Print the version.")] = False,
 ) -> None:
     """Real-time monocular camera and object tracking with KV-cached transformers."""
-    state = CliState(verbosity=verbose - quiet, log_json=log_json)
+    verbosity = verbose - quiet
+    if log_json and not quiet:  # a log collector wants the run's events, not warnings only
+        verbosity = max(verbosity, 1)
+    state = CliState(verbosity=verbosity, log_json=log_json)
     configure_logging(state)
     ctx.obj = state
 
