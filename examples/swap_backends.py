@@ -28,10 +28,14 @@ class Outcome:
     backends_used: list[str]  # "1:runtime/dtype" of the backend that tracked each frame
     keyframes: int
     mismatch_refused: bool  # a backend with other weights was refused
-    all_poses_valid_after_swap: bool
+    all_poses_valid_after_swap: bool  # False when no frame ran after a swap
+    swapped_at: int | None  # the frame the backends were swapped at (None: never)
 
 
-def simulated(frames: int) -> tuple[Backend, Callable[[], Backend], Backend, Frames]:
+Setup = tuple[Backend, Callable[[], Backend], Backend, Frames, int]  # ..., frames available
+
+
+def simulated(frames: int) -> Setup:
     """Two simulated backends of one model (as torch-on-GPU and onnx-on-CPU would be) and one
     of another model (another seed: other "weights")."""
     from kvtracker_sdk import SimulatedBackend
@@ -40,10 +44,11 @@ def simulated(frames: int) -> tuple[Backend, Callable[[], Backend], Backend, Fra
     path = orbit(frames, radius=1.2)
     first = SimulatedBackend(path, seed=0)
     images = ((f.image, f.timestamp) for f in first.frames((240, 320), textured=False))
-    return first, lambda: SimulatedBackend(path, seed=0), SimulatedBackend(path, seed=1), images
+    return (first, lambda: SimulatedBackend(path, seed=0), SimulatedBackend(path, seed=1), images,
+            len(path))
 
 
-def real(weights: str, source: str, frames: int) -> tuple[Backend, Callable[[], Backend], Backend, Frames]:
+def real(weights: str, source: str, frames: int) -> Setup:
     """PyTorch fp32 first; ONNX Runtime second if installed (else PyTorch bf16); a simulated
     backend stands for "another model" to show the refusal."""
     import torch
@@ -62,9 +67,11 @@ def real(weights: str, source: str, frames: int) -> tuple[Backend, Callable[[], 
 
     first = TorchBackend.from_pretrained(weights)
     stranger = SimulatedBackend(orbit(10))
-    stream = ((f.image, f.timestamp) for f in open_source(source))
+    opened = open_source(source)
+    stream = ((f.image, f.timestamp) for f in opened)
     limited = (item for _, item in zip(range(frames), stream, strict=False))
-    return first, second, stranger, limited
+    # a video may only estimate its length (0: unknown): then trust --frames
+    return first, second, stranger, limited, min(frames, len(opened) or frames)
 
 
 def main(argv: list[str] | None = None) -> Outcome:
@@ -77,13 +84,16 @@ def main(argv: list[str] | None = None) -> Outcome:
         parser.error("--weights needs --source (the frames to track)")
 
     if args.weights:
-        first, make_second, stranger, frames = real(args.weights, args.source, args.frames)
+        first, make_second, stranger, frames, available = real(
+            args.weights, args.source, args.frames
+        )
         config = TrackerConfig(resolution=224, keyframing={"interval_frames": 3})
     else:
-        first, make_second, stranger, frames = simulated(args.frames)
+        first, make_second, stranger, frames, available = simulated(args.frames)
         config = TrackerConfig(keyframing={"interval_frames": 30})
-    swap_at = args.frames // 2
-    used, valid_after, refused = [], [], False
+    # halfway through the frames there are (a source may hold fewer than --frames)
+    swap_at = min(args.frames, available) // 2
+    used, valid_after, refused, swapped_at = [], [], False, None
 
     with Tracker(config, first) as tracker:
         for k, (image, timestamp) in enumerate(frames):
@@ -95,6 +105,7 @@ def main(argv: list[str] | None = None) -> Outcome:
                     print(f"frame {k}: refused as expected: {str(error)[:80]}...")
                 previous = tracker.set_backend(make_second())
                 previous.close()  # the tracker does not close a backend it was given
+                swapped_at = k
                 print(f"frame {k}: swapped {previous.info.backend} -> {tracker.backend.info.backend}"
                       f" ({tracker.backend.info.dtype}), map kept: "
                       f"{tracker.map_status.num_keyframes} keyframes")
@@ -108,8 +119,13 @@ def main(argv: list[str] | None = None) -> Outcome:
     stranger.close()
 
     counts = ", ".join(f"{used.count(name)} frames on backend {name}" for name in dict.fromkeys(used))
-    print(f"{counts}; {keyframes} keyframes; every pose after the swap valid: {all(valid_after)}")
-    return Outcome(used, keyframes, refused, bool(valid_after) and all(valid_after))
+    if swapped_at is None:
+        print(f"{counts}; {keyframes} keyframes; NOT swapped: the source ended after "
+              f"{len(used)} frames, before frame {swap_at}")
+    else:
+        print(f"{counts}; {keyframes} keyframes; {sum(valid_after)} of {len(valid_after)} poses "
+              f"after the swap valid")
+    return Outcome(used, keyframes, refused, bool(valid_after) and all(valid_after), swapped_at)
 
 
 if __name__ == "__main__":

@@ -81,6 +81,18 @@ def test_swap_backends() -> None:
     assert outcome.backends_used[20:] == ["2:simulated/float64"] * 20
 
 
+def test_swap_backends_on_a_source_shorter_than_frames_still_swaps(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    example = load("swap_backends")
+    twenty = example.simulated
+    monkeypatch.setattr(example, "simulated", lambda frames: twenty(20))  # 20 frames, not 120
+    outcome = example.main(["--frames", "120"])
+    assert outcome.swapped_at == 10 and outcome.all_poses_valid_after_swap
+    assert outcome.backends_used == ["1:simulated/float64"] * 10 + ["2:simulated/float64"] * 10
+    assert "10 of 10 poses after the swap valid" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("use_box", [False, True])
 def test_object_masks(use_box: bool) -> None:
     outcome = load("object_masks").main(["--frames", "40"] + (["--box"] if use_box else []))
