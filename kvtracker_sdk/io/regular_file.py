@@ -35,7 +35,7 @@ def read_regular_bytes(
     try:
         fd = os.open(path, flags)
     except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
-        raise error(f"{what} {path}: cannot open it ({exc})") from exc
+        raise error(f"{what} {path}: cannot read it ({exc})") from exc
     with os.fdopen(fd, "rb") as handle:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
