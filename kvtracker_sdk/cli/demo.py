@@ -18,7 +18,7 @@ from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.run_loop import InputFrame
-from kvtracker_sdk.cli.session import OutputOptions, run_session
+from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.log import get_logger
 
@@ -89,6 +89,7 @@ def demo(
     image_size = _parse_size(size)
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be >= 1, got {frames}")
+    check_outputs(OutputOptions(out, rerun=rerun))  # before the first frame
     if gt is not None:
         truth = GroundTruth.from_tum(gt, rate_hz=30.0)
         if frames is not None:

@@ -15,12 +15,14 @@ import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from kvtracker_sdk.cli.run_loop import InputFrame
-from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError
-from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource
+from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError, SourceError
+from kvtracker_sdk.io.regular_file import read_regular_bytes
+from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
 
 __all__ = ["FrameSelection", "MaskFolder", "parse_bbox", "read_frames"]
 
@@ -57,6 +59,9 @@ class MaskFolder:
         files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
         if not files:
             raise SourceError(f"mask folder {folder} holds no images")
+        for path in files:  # a FIFO named 3.png would block the run when its mask is read
+            if not path.is_file():
+                raise MaskError(f"mask folder {folder}: {path.name} is not a regular file")
         self.files = sorted(files, key=_natural_key)
 
     def __len__(self) -> int:
@@ -67,7 +72,8 @@ class MaskFolder:
 
         if index >= len(self.files):
             raise MaskError(f"no mask for frame {index}: the mask folder has {len(self.files)}")
-        grey = cv2.imread(str(self.files[index]), cv2.IMREAD_GRAYSCALE)
+        data = read_regular_bytes(self.files[index], MaskError, what="mask")  # never blocks
+        grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
         if grey is None:
             raise MaskError(f"{self.files[index]}: cannot decode the mask image")
         return grey > 0
@@ -95,18 +101,66 @@ def read_frames(
     """The selected frames of ``source``, each with its mask (by source position) or the box.
 
     Skipped frames are still decoded (sources read sequentially, as a video must), so a large
-    ``stride`` saves tracking time, not decoding time.
+    ``stride`` saves tracking time, not decoding time. A frame or mask that cannot be read is
+    yielded with its ``error`` set (the run loop's ``--on-bad-frame`` policy decides).
     """
     used = 0
-    for frame in source:
+    for frame in _source_frames(source):
         offset = frame.frame_index - selection.start
         if offset < 0 or offset % selection.stride:
             continue
         if selection.max_frames is not None and used >= selection.max_frames:
             return
-        mask = masks.mask(frame.frame_index) if masks is not None else None
         used += 1
+        if isinstance(frame, _Unreadable):
+            yield InputFrame(_NO_IMAGE, frame.timestamp, error=frame.error)
+            continue
+        try:
+            mask = masks.mask(frame.frame_index) if masks is not None else None
+        except MaskError as error:
+            yield InputFrame(frame.image, frame.timestamp, error=error)
+            continue
         yield InputFrame(frame.image, frame.timestamp, mask=mask, bbox=bbox)
+
+
+class _Unreadable(NamedTuple):
+    """A source frame that could not be decoded."""
+
+    frame_index: int
+    timestamp: float
+    error: InputError
+
+
+_NO_IMAGE = np.zeros((0, 0, 3), np.uint8)
+
+
+def _source_frames(source: ImageSource) -> Iterator[SourceFrame | _Unreadable]:
+    """The source's frames; an undecodable one becomes an ``_Unreadable`` in its place.
+
+    A list of image files is read file by file here, so that one bad file does not end the
+    sequence (the source's own iterator stops at its first error); a stream (a video) cannot be
+    resumed after an error, so that error is its last item.
+    """
+    files, stamps = getattr(source, "files", None), getattr(source, "timestamps", None)
+    if isinstance(files, list) and stamps is not None and len(stamps) == len(files):
+        for index, (stamp, file) in enumerate(zip(stamps, files, strict=True)):
+            try:
+                yield SourceFrame(index, float(stamp), read_rgb(file))
+            except InputError as error:
+                yield _Unreadable(index, float(stamp), error)
+        return
+    index = 0
+    iterator = iter(source)
+    while True:
+        try:
+            frame = next(iterator)
+        except StopIteration:
+            return
+        except InputError as error:
+            yield _Unreadable(index, float("nan"), error)
+            return
+        index = frame.frame_index + 1
+        yield frame
 
 
 def _natural_key(path: Path) -> list[int | str]:

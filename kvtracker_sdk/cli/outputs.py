@@ -11,7 +11,10 @@
 | ``run.json`` | what ran: command, input, config, versions, backend fingerprint, timings, states |
 
 Every file is written atomically (``io/``'s writers), ``run.json`` last: a folder with a
-``run.json`` holds a complete run.
+``run.json`` holds a complete run. An optional output whose extra is missing (the plot without
+matplotlib) is skipped with a warning and listed under ``skipped_outputs``; it never costs the
+others. Files of ours that a previous run listed in the folder's ``run.json`` and this run did
+not write (e.g. its ``evaluation.json``) are removed, so the folder holds one run only.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import numpy as np
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cli.run_loop import RunRecord
-from kvtracker_sdk.errors import EvaluationError
+from kvtracker_sdk.errors import EvaluationError, MissingDependencyError
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.ply import write_ply
 from kvtracker_sdk.io.trajectory import Trajectory, write_tum
@@ -44,6 +47,9 @@ __all__ = ["RunDescription", "RunOutputs", "auto_voxel_size", "write_outputs"]
 _log = get_logger(__name__)
 _VERSIONED = ("numpy", "torch", "onnxruntime", "rerun-sdk", "opencv-python-headless", "typer")
 _AUTO_VOXEL_FRACTION = 0.005  # of keyframe 0's median depth: ~1.5 mm at 30 cm, 1 cm at 2 m
+# the files a run writes into --out by these names (others in the folder are never touched)
+_OUR_FILES = frozenset({"trajectory.txt", "keyframes.json", "points.ply", "trajectory.png",
+                        "groundtruth.txt", "evaluation.json"})
 
 
 @dataclass(frozen=True)
@@ -65,6 +71,7 @@ class RunOutputs:
     num_poses: int
     num_points: int
     evaluation: EvaluationReport | None
+    skipped: dict[str, str] = field(default_factory=dict)  # output -> why it was not written
 
 
 def auto_voxel_size(keyframe_map: KeyframeMap) -> float | None:
@@ -90,10 +97,13 @@ def write_outputs(
     min_confidence: float = 0.5,
     voxel_size: float | None = None,
     extra_files: dict[str, Path] | None = None,
+    skipped: dict[str, str] | None = None,
 ) -> RunOutputs:
     """Write every output of a run into ``out_dir`` (created); ``voxel_size`` None: automatic,
     0: no thinning. ``ground_truth`` enables the evaluation and the comparison plot;
-    ``extra_files`` (e.g. the rerun recording) are listed in ``run.json``."""
+    ``extra_files`` (e.g. the rerun recording) are listed in ``run.json``, as are the outputs
+    ``skipped`` before (name -> reason) and here."""
+    skipped = dict(skipped or {})
     out_dir.mkdir(parents=True, exist_ok=True)
     files = {name: out_dir / name for name in ("trajectory.txt", "keyframes.json", "points.ply")}
     trajectory = record.trajectory()
@@ -110,17 +120,46 @@ def write_outputs(
         if evaluation is not None:
             files["evaluation.json"] = out_dir / "evaluation.json"
             _write_json(files["evaluation.json"], evaluation.to_dict())
-    if len(trajectory):
-        files["trajectory.png"] = _plot(out_dir / "trajectory.png", trajectory, evaluation,
-                                        description)
+    if not len(trajectory):
+        skipped["trajectory.png"] = "no valid pose"
     else:
-        _log.warning("no valid pose: trajectory.png not written")
+        try:
+            files["trajectory.png"] = _plot(out_dir / "trajectory.png", trajectory, evaluation,
+                                            description)
+        except MissingDependencyError as error:  # an optional output: the others still matter
+            skipped["trajectory.png"] = str(error)
+    for name, reason in skipped.items():
+        _log.warning(f"{name} not written", reason=reason)
     files.update(extra_files or {})
+    _remove_stale_outputs(out_dir, written=set(files))
     files["run.json"] = out_dir / "run.json"
     document = _run_document(tracker, record, description, files, num_points, evaluation,
                              evaluation_note)
+    document["skipped_outputs"] = skipped
     _write_json(files["run.json"], document)
-    return RunOutputs(files, len(trajectory), num_points, evaluation)
+    return RunOutputs(files, len(trajectory), num_points, evaluation, skipped)
+
+
+def _remove_stale_outputs(out_dir: Path, written: set[str]) -> None:
+    """Remove the files of ours that the folder's previous ``run.json`` lists and this run did
+    not write: only our own names, only directly in ``out_dir``, only if listed there."""
+    previous = out_dir / "run.json"
+    try:
+        listed = json.loads(previous.read_text(encoding="utf-8")).get("outputs", {})
+    except (OSError, ValueError, AttributeError):  # no previous run (or not one of ours)
+        return
+    if not isinstance(listed, dict):
+        return
+    for name, path in listed.items():
+        target = out_dir / str(name)
+        if name in _OUR_FILES and name not in written and Path(str(path)).name == name:
+            try:
+                if target.is_file() and Path(str(path)).resolve() == target.resolve():
+                    target.unlink()
+                    _log.info("removed an output of the previous run", path=str(target))
+            except OSError as error:
+                _log.warning("cannot remove an output of the previous run", path=str(target),
+                             reason=str(error))
 
 
 def _write_json(path: Path, document: Any) -> None:
@@ -183,8 +222,9 @@ def _plot(
     from kvtracker_sdk.eval.plots import plot_trajectory
 
     label = "SIMULATED " if description.simulated else ""
-    if evaluation is None:
-        return plot_trajectory(path, trajectory, title=f"kvtracker {label}{description.command}")
+    if evaluation is None:  # the first mapping pass's scale: monocular, not metres
+        return plot_trajectory(path, trajectory, title=f"kvtracker {label}{description.command}",
+                               units=None)
     ate = evaluation.ate
     return plot_trajectory(
         path,
@@ -193,6 +233,8 @@ def _plot(
         translation_errors=ate.translation_errors,
         title=f"kvtracker {label}{description.command}: ATE RMSE {ate.translation.rmse:.4f} "
         f"({ate.alignment.value} aligned)",
+        # scaled onto the ground truth (metres in TUM, 7-Scenes and the demo) only by a Sim(3)
+        units="m" if ate.alignment.value == "sim3" else None,
     )
 
 
@@ -238,6 +280,10 @@ def _run_document(
         "frames": record.num_frames,
         "valid_poses": int(sum(r.pose_valid for r in record.results)),
         "interrupted": record.interrupted,
+        "stopped_by": None if record.failure is None else (
+            f"{type(record.failure).__name__}: {record.failure}"
+        ),
+        "bad_frames": record.bad_frames_document(),
         "wall_seconds": round(record.wall_seconds, 4),
         "fps": round(record.fps, 3),
         "timings": {name: s.to_dict() for name, s in record.stage_stats().items()},

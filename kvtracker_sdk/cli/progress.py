@@ -1,4 +1,5 @@
-"""The live progress bar of ``kvtracker track`` / ``demo``: frames, FPS, tracking state, keyframes.
+"""The live progress bar of ``kvtracker track`` / ``demo``: frames, FPS, tracking state, keyframes;
+and ``busy``, the spinner shown over any other long step (loading or exporting weights, saving).
 
 Drawn with rich (installed with typer) on stderr, only when stderr is a terminal and the run is
 not ``-q``: piped or captured output gets the final summary alone, not a stream of redraws.
@@ -8,7 +9,9 @@ Messages printed while the bar is live (``note``) appear above it.
 from __future__ import annotations
 
 import collections
+import contextlib
 import time
+from collections.abc import Iterator
 from types import TracebackType
 
 from rich.console import Console
@@ -22,9 +25,13 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from kvtracker_sdk.cli.logging_setup import CliState
+from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import FrameResult, TrackingState
 
-__all__ = ["FrameProgress"]
+__all__ = ["FrameProgress", "busy"]
+
+_log = get_logger(__name__)
 
 _STATE_STYLES = {
     TrackingState.INIT: "dim",
@@ -94,3 +101,23 @@ class FrameProgress:
     def note(self, text: str) -> None:
         """Print a line (above the live bar when there is one)."""
         self.console.print(text, highlight=False)
+
+
+@contextlib.contextmanager
+def busy(state: CliState, text: str, *, announce: bool = False) -> Iterator[None]:
+    """A spinner saying ``text`` while the block runs (stderr a terminal, not -q/--log-json).
+
+    ``announce``: a step that can take minutes also prints ``text`` as one plain line when
+    stderr is not a terminal, so that a log of the run does not fall silent. Logged at INFO.
+    """
+    _log.info(text)
+    if not state.chatty:
+        yield
+        return
+    if not state.console.is_terminal:
+        if announce:
+            state.console.print(text, highlight=False, markup=False)
+        yield
+        return
+    with state.console.status(text):
+        yield

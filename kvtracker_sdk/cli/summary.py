@@ -54,8 +54,18 @@ def format_summary(
             f"{len(outputs.evaluation.association)} poses), RPE {rpe.translation.rmse:.4f} m / "
             f"{rpe.rotation_deg.rmse:.2f} deg"
         )
+    if record.bad_frames:
+        first = record.bad_frames[0]
+        verb = "stopped the run" if record.failure is not None else "skipped"
+        lines.append(f"bad frames {len(record.bad_frames)} {verb} (--on-bad-frame "
+                     f"{record.bad_frame_policy.value}); first at position {first.position}: "
+                     f"{first.error}")
+    elif record.failure is not None:
+        lines.append(f"stopped    {type(record.failure).__name__}: {record.failure}")
     names = ", ".join(sorted(path.name for path in outputs.files.values()))
     lines.append(f"outputs    {out_dir}/ ({names})")
+    for name, reason in outputs.skipped.items():
+        lines.append(f"warning    {name} not written: {reason}")
     return "\n".join(lines)
 
 

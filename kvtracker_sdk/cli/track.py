@@ -13,9 +13,11 @@ from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
-from kvtracker_sdk.cli.session import OutputOptions, run_session
+from kvtracker_sdk.cli.progress import busy
+from kvtracker_sdk.cli.run_loop import BadFramePolicy
+from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
-from kvtracker_sdk.errors import ConfigError, MapError
+from kvtracker_sdk.errors import ConfigError
 
 __all__ = ["register", "track"]
 
@@ -61,6 +63,10 @@ def track(
     start: Annotated[int, typer.Option(help="First frame to use.")] = 0,
     stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
     max_frames: Annotated[int | None, typer.Option(help="Stop after N frames.")] = None,
+    on_bad_frame: Annotated[BadFramePolicy, typer.Option(
+        help="A frame that cannot be used (undecodable, another size, bad mask): stop the run "
+        "there (outputs so far kept, exit code 3) or skip it (counted in the summary and "
+        "run.json).")] = BadFramePolicy.STOP,
     fps: Annotated[float, typer.Option(help="Frame rate that stamps an image folder.")] = 30.0,
     min_confidence: Annotated[float, typer.Option(
         help="Confidence filter of points.ply.")] = 0.5,
@@ -81,38 +87,76 @@ def track(
     selection = FrameSelection(start, stride, max_frames)
     source = open_source(input_path, fps=fps)
     mask_folder = MaskFolder(masks) if masks is not None else None
-    chosen = open_backend(backend, weights, device=device, dtype=dtype, threads=threads)
+    _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box)
+    options = OutputOptions(
+        out, rerun=rerun, min_confidence=min_confidence, voxel_size=voxel_size,
+        ground_truth=source.ground_truth(), save_map=save_map,
+    )
+    check_outputs(options)  # before the weights load and the first frame, not after the run
+    chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
-        tracker = _tracker(config, base, changes, chosen, load_map)
-        with tracker:
-            if tracker.config.mode is TrackingMode.OBJECT and masks is None and box is None:
-                raise ConfigError(
-                    "object mode needs the object: pass --masks DIR or --bbox x0,y0,x1,y1"
-                )
+        with _tracker(config, base, changes, chosen, load_map) as tracker:
             description = RunDescription(
                 "track", str(input_path), simulated=False,
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map)},
             )
-            options = OutputOptions(
-                out, rerun=rerun, min_confidence=min_confidence, voxel_size=voxel_size,
-                ground_truth=source.ground_truth(),
-            )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box)
             run_session(state, tracker, frames, total=selection.count(len(source)),
-                        description=description, options=options)
-            if save_map is not None:
-                _save(tracker, save_map, state)
+                        description=description, options=options, on_bad_frame=on_bad_frame)
     finally:
         chosen.close()
+
+
+def _effective_mode(
+    config: TrackerConfig, base: TrackerConfig | None, changes: dict[str, Any], load_map: Path | None
+) -> TrackingMode:
+    """The mode the run will track in: with ``--load-map`` and neither ``--config`` nor
+    ``--mode``, the saved map's (read from its header only)."""
+    if load_map is None or base is not None or "mode" in changes:
+        return config.mode
+    from kvtracker_sdk.io.map_file import read_map_info
+
+    try:
+        return TrackingMode(read_map_info(load_map).mode)
+    except ValueError:  # a bad mode field: loading the map reports it as a map error
+        return config.mode
+
+
+def _check_object_inputs(
+    mode: TrackingMode, masks: Path | None, box: tuple[float, float, float, float] | None
+) -> None:
+    """Object mode needs masks or a box; scene mode tracks the whole frame, so a box there would
+    only crop the map's point cloud without saying so."""
+    if mode is TrackingMode.OBJECT and masks is None and box is None:
+        raise ConfigError("object mode needs the object: pass --masks DIR or --bbox x0,y0,x1,y1")
+    if mode is TrackingMode.SCENE and box is not None:
+        raise ConfigError(
+            "--bbox is for object mode (--mode object); scene mode tracks the whole frame"
+        )
+
+
+def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:
+    """``open_backend`` under a spinner; exporting a checkpoint to ONNX (minutes for a full
+    model, on first use) is also announced as a line when stderr is not a terminal."""
+    if kind is BackendKind.ONNX and not _is_onnx_export(weights):
+        text = (f"exporting {weights} to ONNX Runtime (first use only: the export is cached; "
+                "minutes for a full model)")
+        with busy(state, text, announce=True):
+            return open_backend(kind, weights, **options)
+    with busy(state, f"loading the weights {weights}"):
+        return open_backend(kind, weights, **options)
 
 
 def _config_file(path: Path | None) -> TrackerConfig | None:
     """The ``--config`` JSON file as a validated config (None without the option)."""
     if path is None:
         return None
+    from kvtracker_sdk.io.regular_file import read_regular_text
+
+    text = read_regular_text(path, ConfigError, what="--config")  # a FIFO would block forever
     try:
-        return TrackerConfig.from_dict(json.loads(path.read_text(encoding="utf-8")))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        return TrackerConfig.from_dict(json.loads(text))
+    except json.JSONDecodeError as exc:
         raise ConfigError(f"--config {path}: cannot read a JSON config ({exc})") from exc
 
 
@@ -151,13 +195,10 @@ def _tracker(
     return Tracker.from_map(load_map, backend, override)
 
 
-def _save(tracker: Any, path: Path, state: CliState) -> None:
-    if tracker.keyframe_map is None:
-        raise MapError(f"no map was built, nothing to save to {path}")
-    info = tracker.save_map(path)
-    if not state.quiet:
-        typer.echo(f"map        saved {path} ({info.num_keyframes} keyframes, "
-                   f"{info.file_size / 1e6:.1f} MB)")
+def _is_onnx_export(weights: str) -> bool:
+    from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME
+
+    return (Path(weights) / MANIFEST_NAME).is_file()
 
 
 def _str(path: Path | None) -> str | None:

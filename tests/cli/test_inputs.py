@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import cv2
@@ -9,8 +10,9 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
-from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError
+from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError, TrajectoryError
 from kvtracker_sdk.io.sources import ImageFolderSource
+from kvtracker_sdk.io.trajectory import read_trajectory
 
 
 @pytest.fixture
@@ -48,10 +50,33 @@ def test_masks_follow_natural_order(folder: Path) -> None:
 
 def test_too_few_masks_is_a_mask_error(folder: Path) -> None:
     (folder / "masks" / "10.png").unlink()
-    frames = read_frames(ImageFolderSource(folder / "frames"), FrameSelection(),
-                         masks=MaskFolder(folder / "masks"))
-    with pytest.raises(MaskError, match="no mask for frame 9"):
-        list(frames)
+    frames = list(read_frames(ImageFolderSource(folder / "frames"), FrameSelection(),
+                              masks=MaskFolder(folder / "masks")))
+    # the frame without a mask is handed on with its error: --on-bad-frame decides
+    assert len(frames) == 10 and all(f.error is None for f in frames[:9])
+    assert isinstance(frames[9].error, MaskError) and "no mask for frame 9" in str(frames[9].error)
+
+
+def test_an_undecodable_frame_does_not_end_the_sequence(folder: Path) -> None:
+    (folder / "frames" / "f04.png").write_bytes(b"not a png")
+    frames = list(read_frames(ImageFolderSource(folder / "frames"), FrameSelection()))
+    assert [f.error is None for f in frames] == [True] * 4 + [False] + [True] * 5
+    assert isinstance(frames[4].error, SourceError) and "f04.png" in str(frames[4].error)
+    assert [int(f.image[0, 0, 0]) for f in frames[5:]] == [5, 6, 7, 8, 9]
+
+
+def test_fifos_are_refused_not_waited_on(folder: Path) -> None:
+    from kvtracker_sdk.io.regular_file import read_regular_text
+
+    os.mkfifo(folder / "masks" / "11.png")  # reading it would block until someone writes
+    with pytest.raises(MaskError, match="11.png is not a regular file"):
+        MaskFolder(folder / "masks")
+    fifo = folder / "pipe.json"
+    os.mkfifo(fifo)
+    with pytest.raises(TrajectoryError, match="FIFO"):
+        read_trajectory(fifo)
+    with pytest.raises(ConfigError, match="FIFO"):
+        read_regular_text(fifo, ConfigError, what="--config")
 
 
 @pytest.mark.parametrize("bad", ["1,2,3", "a,b,c,d", "", "1,2,3,4,5"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -64,3 +65,25 @@ def test_ctrl_c_writes_the_outputs_of_the_frames_processed(tmp_path: Path) -> No
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["interrupted"] is True and run["frames"] == 25
     assert (tmp_path / "trajectory.txt").read_text().count("\n") == 25 + 1  # header + 25 poses
+
+
+def test_a_first_ctrl_c_lets_the_current_frame_finish() -> None:
+    """SIGINT while frame 12 is being read: the loop stops before tracking another frame, not
+    in the middle of one, and the previous handler is back afterwards."""
+    backend = SimulatedBackend(orbit(40))
+    before = signal.getsignal(signal.SIGINT)
+
+    def interrupted(count: int) -> Iterator[InputFrame]:
+        for frame in frames(backend, count):
+            if len(seen) == 12:
+                signal.raise_signal(signal.SIGINT)  # handled at once, on this (main) thread
+            seen.append(frame.timestamp)
+            yield frame
+
+    seen: list[float] = []
+    progress = FrameProgress(Console(force_terminal=False), 40, label="t")
+    with Tracker(TrackerConfig(resolution=224), backend) as tracker:
+        record = run_frames(tracker, interrupted(40), progress)
+        assert tracker.state.value == "TRACKING"
+    assert record.interrupted and record.num_frames == 12 and record.failure is None
+    assert signal.getsignal(signal.SIGINT) is before
