@@ -34,11 +34,13 @@ NON_PLOT_OUTPUTS = {"trajectory.txt", "keyframes.json", "points.ply", "run.json"
 
 
 @pytest.fixture
-def no_matplotlib(monkeypatch: pytest.MonkeyPatch) -> None:
-    """``import matplotlib`` (and every submodule) fails, as without the [viz] extra."""
-    for name in [n for n in sys.modules if n == "matplotlib" or n.startswith("matplotlib.")]:
-        monkeypatch.setitem(sys.modules, name, None)
-    monkeypatch.setitem(sys.modules, "matplotlib", None)  # None in sys.modules: ImportError
+def no_viz_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``import matplotlib`` and ``import rerun`` (and every submodule) fail, as without the
+    [viz] extra: a None in ``sys.modules`` makes an import raise ImportError."""
+    for package in ("matplotlib", "rerun"):
+        for name in [n for n in sys.modules if n == package or n.startswith(package + ".")]:
+            monkeypatch.setitem(sys.modules, name, None)
+        monkeypatch.setitem(sys.modules, package, None)
 
 
 def copy_frames(source: Path, target: Path) -> Path:
@@ -49,7 +51,7 @@ def copy_frames(source: Path, target: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------- 13: no [viz]
-@pytest.mark.usefixtures("no_matplotlib")
+@pytest.mark.usefixtures("no_viz_extra")
 def test_demo_without_the_viz_extra_writes_every_non_plot_output(tmp_path: Path) -> None:
     result = invoke("demo", "--out", tmp_path, *SMALL_DEMO)
     assert result.exit_code == 0, result.output
@@ -61,7 +63,7 @@ def test_demo_without_the_viz_extra_writes_every_non_plot_output(tmp_path: Path)
     assert "trajectory.png not written" in result.stderr  # and a warning is logged
 
 
-@pytest.mark.usefixtures("no_matplotlib", "simulated_backend")
+@pytest.mark.usefixtures("no_viz_extra", "simulated_backend")
 def test_track_without_the_viz_extra_saves_the_map(tmp_path: Path, simulated_frames: Path) -> None:
     from kvtracker_sdk import read_map_info
 
