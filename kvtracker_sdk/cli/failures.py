@@ -52,7 +52,8 @@ EXIT_CODES: dict[int, str] = {
     ExitCode.BACKEND: "backend error or backend mismatch",
     ExitCode.OUTPUT: "an output cannot be written (--out, --save-map, --rerun: missing folder, "
     "permissions, disk full)",
-    ExitCode.INTERRUPTED: "interrupted (outputs of the processed frames are written)",
+    ExitCode.INTERRUPTED: "interrupted (the map and the outputs of the processed frames are "
+    "written)",
 }
 
 EXIT_CODES_EPILOG = "Exit codes: " + "; ".join(

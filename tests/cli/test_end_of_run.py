@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.cli.failures import ExitCode
+from kvtracker_sdk.cli.failures import EXIT_CODES, ExitCode
 from kvtracker_sdk.io.trajectory import read_tum
 from tests.cli.conftest import SIMULATED_FRAMES
 from tests.cli.invoke import invoke
@@ -215,3 +216,12 @@ def test_an_unwritable_folder_is_refused_before_the_first_frame(
     demo = invoke("demo", "--out", tmp_path / "ro", *SMALL_DEMO)
     assert demo.exit_code == ExitCode.OUTPUT and not (tmp_path / "ro" / "run.json").exists()
 
+
+def test_the_readme_documents_the_exit_codes_the_code_returns() -> None:
+    readme = (PROJECT_ROOT / "README.md").read_text()
+    paragraph = readme.split("**Exit codes**:", 1)[1].split("\n\n", 1)[0]
+    documented = {int(code): text for code, text in re.findall(r"(\d+) ([^·]+)", paragraph)}
+    assert set(documented) == set(EXIT_CODES)
+    # the issue: a read-only --save-map folder gave 6 while the README said 10
+    assert "--save-map" in documented[ExitCode.OUTPUT] and "written" in documented[ExitCode.OUTPUT]
+    assert "--save-map" in EXIT_CODES[ExitCode.OUTPUT] and "map" in EXIT_CODES[ExitCode.INTERRUPTED]
