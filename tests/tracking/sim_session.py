@@ -81,8 +81,9 @@ def drive(
     With asynchronous mapping, ``settle`` waits for every rebuild after each frame (maps swap at
     known frames). ``pace`` lets rebuilds run beside the frame loop but waits for the mapper where
     a slow worker would change the outcome: while the first map is building (frames would get no
-    pose) and when a keyframe candidate is waiting (a newer one would replace it). The keyframes
-    are then those of synchronous mapping, on any machine, at any load.
+    pose), when a keyframe candidate is waiting (a newer one would replace it) and at the end (a
+    rebuild still running). The keyframes are then those of synchronous mapping, on any machine,
+    at any load.
     """
     session = session if session is not None else Session().listen(tracker)
     for frame in backend.frames(SIZE, start=start, stop=stop, textured=False, with_mask=with_mask):
@@ -92,4 +93,6 @@ def drive(
         waiting = result.state is TrackingState.MAPPING or tracker.map_status.keyframe_waiting
         if settle or (pace and waiting):
             assert tracker.wait_for_map(timeout=WAIT_S), "the mapping worker did not finish"
+    if pace:  # a rebuild still running at the end belongs to the run (as in the CLI's loop)
+        assert tracker.wait_for_map(timeout=WAIT_S), "the mapping worker did not finish"
     return session
