@@ -201,9 +201,17 @@ class TrackerConfig(_Section):
     """Everything the ``Tracker`` can be told. Frozen; see the module docstring for construction."""
 
     mode: TrackingMode = TrackingMode.SCENE
-    resolution: Literal[224, 308, 518] = 308
-    """Model input side d: images are resized (aspect kept, multiples of the patch size) to at
-    most d² pixels (KV-Tracker paper: 224, 308 or 518; 308 is its real-time setting)."""
+    resolution: Literal[224, 308, 504, 518] | None = None
+    """Model input side d; its meaning is the model family's official preprocessing
+    (``kvtracker_sdk.preprocess``), aspect kept, sides multiples of the patch size (14):
+
+    * Pi3: a pixel budget, at most d² pixels, as KV-Tracker prepares frames (paper: 224, 308 or
+      518). 640x480 frames become 196x252 at 224, 266x350 at 308, 448x588 at 518.
+    * Depth Anything 3: the longest side, as DA3's ``upper_bound_resize`` (its ``process_res``).
+      640x480 frames become 168x224 at 224, 378x504 at 504.
+
+    None (default): the family's own default, 308 for Pi3 (KV-Tracker's real-time setting) and
+    504 for DA3 (DA3's default); the tracker stores the value it resolved in its config."""
 
     keyframing: KeyframingConfig = KeyframingConfig()
     rejection: RejectionConfig = RejectionConfig()

@@ -34,6 +34,7 @@ and bad input, and a raised input error leaves the tracker and its map untouched
         ├── MapVersionError              format too old or too new
         ├── MapModelMismatchError        made by another model, family or resolution
         ├── MapCorruptedError            checksum or size mismatch in the tensor data
+        ├── MapPreprocessingError        extending a map made by another preprocessing (not asked)
         └── MapIOError                   the file cannot be read or written (missing, disk full)
 """
 
@@ -57,6 +58,7 @@ __all__ = [
     "MapFormatError",
     "MapIOError",
     "MapModelMismatchError",
+    "MapPreprocessingError",
     "MapVersionError",
     "MaskError",
     "MissingDependencyError",
@@ -194,6 +196,12 @@ class MapModelMismatchError(MapError):
 
 class MapCorruptedError(MapError):
     """The map's tensor data does not match its checksums or declared sizes."""
+
+
+class MapPreprocessingError(MapError):
+    """A map's keyframes were prepared by another preprocessing than new keyframes would be (e.g.
+    a map saved before issue 11): extending it would mix two input pipelines in one mapping pass.
+    Tracking against it works; extending needs an explicit ``rebuild=True`` when loading."""
 
 
 class MapIOError(MapError, OSError):

@@ -88,6 +88,7 @@ PUBLIC_API = [
     "MapIOError",
     "MapInfo",
     "MapModelMismatchError",
+    "MapPreprocessingError",
     "MapResult",
     "MapStatus",
     "MapVersionError",

@@ -2,7 +2,7 @@
 
 A backend is stateless with respect to the map. It turns keyframe images into a map (poses in the
 pass's own raw frame, per-pixel confidence and points, and a ``KVCache``), and tracks one image
-against a cache. Images arrive already at the model resolution (``backends/preprocess.py``), as
+against a cache. Images arrive already at the model resolution (``kvtracker_sdk/preprocess``), as
 uint8 RGB [N, H, W, 3] — the same bytes a map file stores, so a rebuild after reloading a map sees
 exactly what the original mapping saw.
 

@@ -34,7 +34,7 @@ def check_frames(images: object, patch_size: int) -> np.ndarray:
     if height % patch_size or width % patch_size or height < patch_size or width < patch_size:
         raise ImageShapeError(
             f"image size {height}x{width} is not a positive multiple of {patch_size}: resize it "
-            "with kvtracker_sdk.backends.preprocess.model_resolution / resize_image first"
+            "with kvtracker_sdk.preprocess.for_family(family).resize first"
         )
     return images
 

@@ -12,7 +12,7 @@ hashes the family). Each family's outputs are converted to the SDK's conventions
 (``backends/torch_families.py``): ``T_world_cam`` camera-to-world float64, confidence in [0, 1]
 (DA3: ``1 - 1/depth_conf``), local points in the camera frame (DA3: unprojected depth).
 
-Images arrive at the model resolution (``backends/preprocess.py``): uint8 RGB, H and W multiples
+Images arrive at the model resolution (``kvtracker_sdk/preprocess``): uint8 RGB, H and W multiples
 of 14. ``map`` runs the full model on the keyframes and returns their poses, confidence and local
 points in the pass's own raw frame, plus the ``KVCache`` (K/V of the global layers, in the
 backend's dtype). ``track`` runs one frame (``track_batch``: several independent frames in one

@@ -19,7 +19,11 @@ import numpy as np
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.geometry.sim3 import Sim3
 
-__all__ = ["Keyframe", "KeyframeMap"]
+__all__ = ["LEGACY_PREPROCESSING", "Keyframe", "KeyframeMap"]
+
+# The preprocessing of maps that do not record one (saved before it was recorded): the name of
+# ``kvtracker_sdk.preprocess.LEGACY_AREA_FLOOR``.
+LEGACY_PREPROCESSING = "legacy-area-floor"
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,7 @@ class KeyframeMap:
     generation: int = 0
     resolution: tuple[int, int] = (0, 0)  # (H, W) model input
     metadata: dict[str, str] = field(default_factory=dict)
+    preprocessing: str = LEGACY_PREPROCESSING  # name of what prepared the keyframe images
 
     @property
     def num_keyframes(self) -> int:

@@ -129,6 +129,7 @@ def _saved_info(
         gauge=keyframe_map.gauge,
         user_metadata=dict(keyframe_map.metadata),
         tensor_sha256={},
+        preprocessing=keyframe_map.preprocessing,
     )
 
 

@@ -34,7 +34,9 @@ from kvtracker_sdk.io.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
+    LEGACY_PREPROCESSING,
     OLDEST_READABLE_VERSION,
+    PREPROCESSING_FIELD,
     TensorSpec,
     check_tensor_table,
     layer_key,
@@ -76,6 +78,9 @@ class MapInfo:
     user_metadata: Mapping[str, str]
     tensor_sha256: Mapping[str, str]  # tensor name -> hex sha256 of its bytes
     file_size: int = 0  # bytes on disk (0 until written)
+    # what prepared the keyframe images (kvtracker_sdk.preprocess); optional in the header:
+    # maps saved before it was recorded were made by the legacy one
+    preprocessing: str = LEGACY_PREPROCESSING
 
     @property
     def layout(self) -> CacheLayout:
@@ -147,6 +152,7 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "gauge": _dumps(gauge),
         "user_metadata": _dumps(dict(info.user_metadata)),
         "tensor_sha256": _dumps(dict(info.tensor_sha256)),
+        PREPROCESSING_FIELD: info.preprocessing,
     }
     metadata[_DIGEST_KEY] = metadata_digest(metadata)
     return metadata
@@ -309,6 +315,14 @@ def _decode_created(fields: _Fields) -> datetime:
     return created
 
 
+def _decode_preprocessing(fields: _Fields) -> str:
+    """The optional preprocessing name; absent in maps saved before it was recorded."""
+    name = fields.metadata.get(PREPROCESSING_FIELD, LEGACY_PREPROCESSING)
+    if not (0 < len(name) <= 64 and name.isascii() and name.isprintable()):
+        raise fields.fail(f"header field '{PREPROCESSING_FIELD}' is not a name: {name[:40]!r}")
+    return name
+
+
 def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str) -> MapInfo:
     """Validate ``__metadata__`` and build the MapInfo: format and version first (a newer
     version may seal its header differently), then the header checksum, then every field."""
@@ -345,6 +359,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         user_metadata=MappingProxyType(_decode_string_map(fields, "user_metadata")),
         tensor_sha256=MappingProxyType(_decode_string_map(fields, "tensor_sha256")),
         file_size=file_size,
+        preprocessing=_decode_preprocessing(fields),
     )
 
 

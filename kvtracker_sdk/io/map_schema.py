@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
+from kvtracker_sdk.cache.keyframe_map import LEGACY_PREPROCESSING
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
 
@@ -38,8 +39,10 @@ __all__ = [
     "CACHE_DTYPES",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "LEGACY_PREPROCESSING",
     "MAX_HEADER_BYTES",
     "OLDEST_READABLE_VERSION",
+    "PREPROCESSING_FIELD",
     "TensorSpec",
     "check_tensor_table",
     "layer_key",
@@ -50,6 +53,9 @@ __all__ = [
 FORMAT_NAME = "kvtracker-map"
 FORMAT_VERSION = 1  # bump on any change a version-1 reader would misread
 OLDEST_READABLE_VERSION = 1
+# Optional header field (no version bump: a version-1 reader ignores it): the name of the
+# preprocessing that prepared the keyframe images; absent = LEGACY_PREPROCESSING.
+PREPROCESSING_FIELD = "preprocessing"
 # Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
 # A pickle or a zip read as a header length gives a number far above this.
 MAX_HEADER_BYTES = 8 * 1024 * 1024

@@ -198,4 +198,5 @@ def map_from_tensors(
         generation=info.generation,
         resolution=info.resolution,
         metadata=dict(info.user_metadata),
+        preprocessing=info.preprocessing,
     )

@@ -13,9 +13,12 @@ Accepted input (design doc, "Per-frame result"):
   Alone it acts as a rectangular mask; with a mask, the mask selects the object and the box only
   sets the crop region.
 
-Output: a uint8 image at model resolution (multiples of the patch size, at most d² pixels), and in
-object mode either the background blacked out (``ObjectPreprocessing.MASK``) or a crop around the
-object dilated by ``crop_margin_px`` and grown to the model's aspect ratio (``CROP``).
+Output: a uint8 image at model resolution, prepared by the model family's preprocessing
+(``kvtracker_sdk.preprocess``: Pi3 as KV-Tracker, DA3 as its own input processor), or by the
+loaded map's when it was made by another one; in object mode either the background blacked out
+(``ObjectPreprocessing.MASK``) or a crop around the object dilated by ``crop_margin_px`` pixels of
+the pushed frame and grown to the model's aspect ratio (``CROP``). The prepared frame carries the
+exact pixel transform from the pushed frame to it.
 """
 
 from __future__ import annotations
@@ -26,13 +29,6 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.preprocess import (
-    fit_box,
-    model_resolution,
-    resize_image,
-    resize_mask,
-    to_uint8,
-)
 from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import (
     BBoxError,
@@ -43,10 +39,25 @@ from kvtracker_sdk.errors import (
     NonFiniteImageError,
     ResolutionChangedError,
 )
+from kvtracker_sdk.geometry.pixel_transform import PixelTransform
+from kvtracker_sdk.preprocess import (
+    BBox,
+    Preprocessing,
+    box_mask,
+    fit_box,
+    for_family,
+    mask_bounds,
+    named,
+)
 
-__all__ = ["FramePreparer", "PreparedFrame", "check_bbox", "check_image", "check_mask"]
-
-BBox = tuple[float, float, float, float]
+__all__ = [
+    "FramePreparer",
+    "PreparedFrame",
+    "check_bbox",
+    "check_image",
+    "check_mask",
+    "resolve_resolution",
+]
 
 
 @dataclass(frozen=True)
@@ -57,6 +68,8 @@ class PreparedFrame:
     mask: np.ndarray | None  # bool [h, w] at model resolution, None when none was given
     input_size: tuple[int, int]  # (H, W) of the pushed image
     timestamp: float | None
+    transform: PixelTransform  # pushed image pixel -> ``image`` pixel (crop and resize)
+    preprocessing: str  # name of the preprocessing that made ``image`` (recorded in maps)
 
 
 def check_image(image: Any, *, min_side: int) -> np.ndarray:
@@ -73,9 +86,10 @@ def check_image(image: Any, *, min_side: int) -> np.ndarray:
         return image
     if not np.issubdtype(image.dtype, np.floating):
         raise ImageDtypeError(f"image dtype must be uint8 or float in [0, 1], got {image.dtype}")
-    if not np.all(np.isfinite(image)):
-        raise NonFiniteImageError("image contains NaN or infinite values")
+    # min/max propagate NaN and expose inf without a full-size temporary (np.isfinite makes one)
     low, high = float(image.min()), float(image.max())
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise NonFiniteImageError("image contains NaN or infinite values")
     if low < 0.0 or high > 1.0:
         raise ImageDtypeError(f"float image values must lie in [0, 1], got [{low:g}, {high:g}]")
     return image
@@ -128,31 +142,39 @@ def _check_timestamp(timestamp: Any) -> float | None:
     return value
 
 
-def _box_mask(box: BBox, size: tuple[int, int]) -> np.ndarray:
-    x0, y0, x1, y1 = box
-    mask = np.zeros(size, dtype=bool)
-    mask[int(math.floor(y0)) : int(math.ceil(y1)), int(math.floor(x0)) : int(math.ceil(x1))] = True
-    return mask
-
-
-def _bounds(mask: np.ndarray) -> BBox:
-    rows = np.flatnonzero(mask.any(axis=1))
-    cols = np.flatnonzero(mask.any(axis=0))
-    return float(cols[0]), float(rows[0]), float(cols[-1] + 1), float(rows[-1] + 1)
+def resolve_resolution(config: TrackerConfig, family: str) -> TrackerConfig:
+    """``config`` with its resolution set: unset (None) means the family's default (Pi3 308,
+    DA3 504). Raises ConfigError for a family without a registered preprocessing."""
+    preprocessing = for_family(family)
+    if config.resolution is not None:
+        return config
+    return config.updated(resolution=preprocessing.default_resolution)
 
 
 class FramePreparer:
-    """Turns user frames into ``PreparedFrame``s for one tracker configuration."""
+    """Turns user frames into ``PreparedFrame``s for one tracker configuration.
 
-    def __init__(self, config: TrackerConfig, *, patch_size: int) -> None:
-        self.config = config
+    ``family``: the backend's model family, which picks the preprocessing of new maps; a frame
+    for a loaded map made by another preprocessing is prepared with that map's (``prepare``).
+    """
+
+    def __init__(self, config: TrackerConfig, *, patch_size: int, family: str) -> None:
+        self.preprocessing: Preprocessing = for_family(family)
+        self.config = resolve_resolution(config, family)
         self.patch_size = int(patch_size)
 
-    def model_size(self, input_size: tuple[int, int]) -> tuple[int, int]:
+    @property
+    def resolution(self) -> int:
+        """The side d of the model input (its meaning is the preprocessing's)."""
+        assert self.config.resolution is not None  # resolved in __init__
+        return self.config.resolution
+
+    def model_size(
+        self, input_size: tuple[int, int], preprocessing: Preprocessing | None = None
+    ) -> tuple[int, int]:
         """(h, w) at model resolution for an input of (H, W)."""
-        return model_resolution(
-            *input_size, side=self.config.resolution, patch_size=self.patch_size
-        )
+        pipeline = preprocessing or self.preprocessing
+        return pipeline.model_size(input_size, self.resolution, self.patch_size)
 
     def prepare(
         self,
@@ -163,12 +185,16 @@ class FramePreparer:
         bbox: Any = None,
         session_input_size: tuple[int, int] | None = None,
         map_resolution: tuple[int, int] | None = None,
+        map_preprocessing: str | None = None,
     ) -> PreparedFrame:
         """Validate and convert one frame; raises an InputError subclass and changes nothing.
 
         ``session_input_size``: the (H, W) of the session's first frame (None: first frame).
         ``map_resolution``: the current map's model (h, w), which the frame must produce.
+        ``map_preprocessing``: the name of the preprocessing that made the current map's frames
+        (None: no map, use the family's).
         """
+        pipeline = self.preprocessing if map_preprocessing is None else named(map_preprocessing)
         checked = check_image(image, min_side=self.patch_size)
         size = (int(checked.shape[0]), int(checked.shape[1]))
         if session_input_size is not None and size != tuple(session_input_size):
@@ -180,12 +206,12 @@ class FramePreparer:
         object_mask = check_mask(mask, size) if mask is not None else None
         box = check_bbox(bbox, size) if bbox is not None else None
         if object_mask is None and box is not None:
-            object_mask = _box_mask(box, size)
+            object_mask = box_mask(box, size)
         object_mode = self.config.mode is TrackingMode.OBJECT
         if object_mode and object_mask is None:
             raise MaskError("object mode needs a mask or a bbox with every frame")
 
-        out_size = self.model_size(size)
+        out_size = self.model_size(size, pipeline)
         if map_resolution is not None and out_size != tuple(map_resolution):
             raise ResolutionChangedError(
                 f"frames of {size} give model input {out_size}, the map was built at "
@@ -193,21 +219,23 @@ class FramePreparer:
             )
         crop = self.config.object.preprocessing is ObjectPreprocessing.CROP
         if object_mode and crop and object_mask is not None:
-            x0, y0, x1, y1 = fit_box(
-                box if box is not None else _bounds(object_mask),
+            window = fit_box(
+                box if box is not None else mask_bounds(object_mask),
                 size,
-                margin=self.config.object.crop_margin_px,
+                margin=self.config.object.crop_margin_px,  # pixels of the pushed frame
                 aspect=out_size[0] / out_size[1],
             )
-            checked = checked[y0:y1, x0:x1]
+            x0, y0, x1, y1 = window
+            resized = pipeline.resize_crop(checked, window, out_size)
             object_mask = object_mask[y0:y1, x0:x1]
-
-        resized = resize_image(to_uint8(checked), out_size)
-        small_mask = resize_mask(object_mask, out_size) if object_mask is not None else None
+        else:
+            resized = pipeline.resize(checked, self.resolution, self.patch_size)
+        small_mask = pipeline.resize_mask(object_mask, out_size) if object_mask is not None else None
         if small_mask is not None and not small_mask.any():
             raise MaskError(f"the mask is too small: it selects no pixel at model size {out_size}")
-        if np.may_share_memory(resized, image):
-            resized = resized.copy()  # keyframes freeze their image: never freeze the user's array
+        image_out = resized.image  # a new array: never the caller's
         if object_mode and not crop and small_mask is not None:
-            resized[~small_mask] = 0  # black background (KV-Tracker object mode)
-        return PreparedFrame(np.ascontiguousarray(resized), small_mask, size, stamp)
+            image_out[~small_mask] = 0  # black background (KV-Tracker object mode)
+        return PreparedFrame(
+            image_out, small_mask, size, stamp, resized.transform, pipeline.name
+        )

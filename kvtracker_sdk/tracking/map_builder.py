@@ -17,7 +17,7 @@ import numpy as np
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.config import RejectionConfig
-from kvtracker_sdk.errors import BackendError
+from kvtracker_sdk.errors import BackendError, MapPreprocessingError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.tracking.gauge import (
     Correction,
@@ -40,6 +40,7 @@ class KeyframeCandidate:
     timestamp: float | None
     image: np.ndarray  # uint8 [h, w, 3]
     mask: np.ndarray | None  # bool [h, w]
+    preprocessing: str  # name of the preprocessing that made ``image`` (see kvtracker_sdk.preprocess)
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,12 @@ def build_map(
 ) -> RebuildOutcome:
     """Run the mapping pass for ``request`` and build the new map (see module docstring)."""
     start = time.perf_counter()
+    previous, candidate_frame = request.previous, request.candidate
+    if previous is not None and previous.preprocessing != candidate_frame.preprocessing:
+        raise MapPreprocessingError(
+            f"cannot add a frame prepared by {candidate_frame.preprocessing!r} to a map whose "
+            f"keyframes were prepared by {previous.preprocessing!r}"
+        )
     sources: list[Keyframe | KeyframeCandidate] = [*request.keep, request.candidate]
     images = np.stack([s.image for s in sources])  # [N, h, w, 3] uint8
     size = (int(images.shape[1]), int(images.shape[2]))
@@ -131,7 +138,10 @@ def build_map(
     )
     cache = result.cache
     cache.relabel_keyframes([kf.keyframe_id for kf in keyframes])
-    new_map = KeyframeMap(keyframes, cache, gauge, generation=request.generation, resolution=size)
+    new_map = KeyframeMap(
+        keyframes, cache, gauge, generation=request.generation, resolution=size,
+        preprocessing=candidate_frame.preprocessing,
+    )
     reference = keyframes[0].mean_confidence
     candidate = keyframes[-1].mean_confidence
     judged = request.previous is not None and rejection.enabled

@@ -30,7 +30,7 @@ import torch
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
-from kvtracker_sdk.errors import StateError
+from kvtracker_sdk.errors import MapPreprocessingError, StateError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import keyframes as policy
 from kvtracker_sdk.tracking.frame_input import PreparedFrame
@@ -61,8 +61,10 @@ class _Proposal:
 class MapKeeper:
     """Holds the current ``KeyframeMap`` and runs its rebuilds for one tracker."""
 
-    def __init__(self, config: TrackerConfig) -> None:
+    def __init__(self, config: TrackerConfig, *, preprocessing: str) -> None:
         self._config = config
+        self._preprocessing = preprocessing  # what prepares frames for new maps (the family's)
+        self._rebuild_foreign = False  # the loaded map may be extended across preprocessings
         self._mapper: Mapper[RebuildOutcome] = Mapper(asynchronous=config.threading.async_mapping)
         self._budget = policy.KeyframeBudget(config.keyframing.budget)
         self.map: KeyframeMap | None = None
@@ -106,6 +108,7 @@ class MapKeeper:
         """Forget the map and any rebuild in flight (its result will be ignored)."""
         self._mapper.discard()
         self.map = None
+        self._rebuild_foreign = False
         self._clear_counters()
 
     def convert_cache(self, dtype: str, device: str) -> None:
@@ -121,14 +124,27 @@ class MapKeeper:
                 kf_map, cache=kf_map.cache.to(dtype=target_dtype, device=target_device)
             )
 
-    def load(self, kf_map: KeyframeMap) -> None:
-        """Install a map built elsewhere (a saved map); ids and generations continue after it."""
+    def load(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:
+        """Install a map built elsewhere (a saved map); ids and generations continue after it.
+
+        A map whose keyframes another preprocessing prepared is tracked against but not extended
+        unless ``rebuild`` (its new keyframes are then prepared its way, by the tracker)."""
         self.drop()
         self.map = kf_map
+        self._rebuild_foreign = rebuild
         self.generation = max(self.generation, kf_map.generation)
         self._next_keyframe_id = max(self._next_keyframe_id, max(kf_map.keyframe_ids) + 1)
 
     # ------------------------------------------------------------------ keyframes
+    @property
+    def extendable(self) -> bool:
+        """Whether keyframes may be added to the current map: it was made by this tracker's
+        preprocessing, or loading it asked to rebuild it anyway."""
+        kf_map = self.map
+        if kf_map is None:
+            return False
+        return kf_map.preprocessing == self._preprocessing or self._rebuild_foreign
+
     def wants_keyframe(self, T_world_cam: np.ndarray, index: int) -> bool:
         """Whether the confidently tracked frame ``index`` at ``T_world_cam`` should be proposed.
 
@@ -138,6 +154,8 @@ class MapKeeper:
         kf_map = self.map
         if kf_map is None or index < self._retry_frame:
             return False
+        if not self.extendable:
+            return False  # a map from another preprocessing is tracked against, never extended
         capacity = self._budget.capacity(kf_map.cache.bytes_per_keyframe())
         if capacity is not None and capacity < 2:
             return False  # the budget holds keyframe 0 only
@@ -159,7 +177,16 @@ class MapKeeper:
         self, backend: Backend, frame: PreparedFrame, index: int, T_world_cam: np.ndarray
     ) -> int | None:
         """Propose the frame as a keyframe: its rebuild starts now (returns the candidate's id),
-        or, while another rebuild is pending, it waits for that one (returns None)."""
+        or, while another rebuild is pending, it waits for that one (returns None).
+
+        MapPreprocessingError if the map's keyframes were prepared by another preprocessing and
+        loading it did not ask to rebuild it (``wants_keyframe`` is then always False)."""
+        kf_map = self.map
+        if kf_map is not None and not self.extendable:
+            raise MapPreprocessingError(
+                f"the map's keyframes were prepared by {kf_map.preprocessing!r}, new keyframes by "
+                f"{self._preprocessing!r}: load the map with rebuild=True to extend it anyway"
+            )
         proposal = _Proposal(frame, index, np.asarray(T_world_cam, dtype=np.float64))
         self._last_proposed_frame = index
         if not self._mapper.pending:
@@ -198,7 +225,8 @@ class MapKeeper:
         evicted: tuple[int, ...] = (),
     ) -> int:
         candidate = KeyframeCandidate(
-            self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask
+            self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask,
+            frame.preprocessing,
         )
         self._next_keyframe_id += 1
         self._last_proposed_frame = max(self._last_proposed_frame, index)  # bootstraps count too

@@ -30,9 +30,16 @@ from typing import Any
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import ConfigError, MapFormatError, MapModelMismatchError, StateError
+from kvtracker_sdk.errors import (
+    ConfigError,
+    MapFormatError,
+    MapModelMismatchError,
+    MapVersionError,
+    StateError,
+)
 from kvtracker_sdk.io import map_export
 from kvtracker_sdk.io.map_file import MapInfo, load_map, save_map
+from kvtracker_sdk.preprocess import PREPROCESSINGS
 
 __all__ = [
     "ConfigOverride",
@@ -118,6 +125,8 @@ def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> Trac
             f"{config.mode.value} mode"
         )
     saved_side = json.loads(info.tracker_config_json).get("resolution")
+    if config.resolution is None and isinstance(saved_side, int):
+        config = config.updated(resolution=saved_side)  # unset: the map's
     if isinstance(saved_side, int) and saved_side != config.resolution:
         height, width = info.resolution
         raise MapModelMismatchError(
@@ -137,6 +146,11 @@ def load_tracker_map(
     """
     source = str(path)
     loaded = load_map(path, expected_backend=backend_info)
+    if loaded.info.preprocessing not in PREPROCESSINGS:
+        raise MapVersionError(
+            f"{source}: its frames were prepared by {loaded.info.preprocessing!r}, which this SDK "
+            f"does not know (known: {sorted(PREPROCESSINGS)}); upgrade kvtracker-sdk"
+        )
     resolved = resolve_config(loaded.info, config, source)
     return LoadedTrackerMap(loaded.keyframe_map, resolved, loaded.info)
 

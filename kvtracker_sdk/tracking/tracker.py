@@ -69,12 +69,15 @@ class Tracker:
 
     def __init__(self, config: TrackerConfig | Mapping[str, Any] | None, backend: Backend) -> None:
         cfg = config if isinstance(config, TrackerConfig) else TrackerConfig.from_dict(config or {})
+        self._preparer = FramePreparer(
+            cfg, patch_size=backend.info.patch_size, family=backend.info.family
+        )
+        cfg = self._preparer.config  # an unset resolution becomes the family's default
         self._config = cfg
         self._backend = backend
         self._owns_backend = False
         self._events = EventBus()
-        self._keeper = MapKeeper(cfg)
-        self._preparer = FramePreparer(cfg, patch_size=backend.info.patch_size)
+        self._keeper = MapKeeper(cfg, preprocessing=self._preparer.preprocessing.name)
         self._monitor = ConfidenceMonitor.from_config(cfg.relocalization)
         self._lock = threading.RLock()
         self._status: tuple[TrackingState, StateReason] = (_S.INIT, _R.NONE)
@@ -97,12 +100,20 @@ class Tracker:
         return tracker
 
     @classmethod
-    def from_map(cls, path: PathLike, backend: Backend, config: ConfigOverride = None) -> Tracker:
+    def from_map(
+        cls, path: PathLike, backend: Backend, config: ConfigOverride = None, *,
+        rebuild: bool = False,
+    ) -> Tracker:
         """A tracker relocalising against the map saved at ``path`` by ``backend``'s model.
-        ``config``: None keeps the map's saved one; a dict changes some of its fields."""
+        ``config``: None keeps the map's saved one; a dict changes some of its fields.
+
+        A map whose keyframes another preprocessing prepared (saved before the SDK followed the
+        official pipelines: header without ``preprocessing``) is tracked against with frames
+        prepared its way, and not extended; ``rebuild=True`` lets new keyframes extend it (also
+        prepared its way). Extending it otherwise raises ``MapPreprocessingError``."""
         loaded = persistence.load_tracker_map(path, backend.info, config)
         tracker = cls(loaded.config, backend)
-        tracker._install_loaded_map(loaded.keyframe_map)
+        tracker._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
         return tracker
 
     # ------------------------------------------------------------------ read-only views
@@ -153,15 +164,16 @@ class Tracker:
         return self._events.unregister(handle)
 
     # ------------------------------------------------------------------ session control
-    def initialize(self, map: PathLike | None = None) -> None:
+    def initialize(self, map: PathLike | None = None, *, rebuild: bool = False) -> None:
         """Start a fresh session: without ``map``, no map and state INIT; with ``map``, relocalise
         against the map saved at that path under this tracker's configuration (its mode and
-        resolution must be the map's). A load that fails raises and changes nothing."""
+        resolution must be the map's; ``rebuild`` as in ``from_map``). A load that fails raises
+        and changes nothing."""
         if map is None:
             self.reset()
             return
         loaded = persistence.load_tracker_map(map, self._backend.info, self._config)
-        self._install_loaded_map(loaded.keyframe_map)
+        self._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
 
     def reset(self) -> None:
         """Drop the map (a pending rebuild is discarded) and return to INIT with reason RESET."""
@@ -171,7 +183,7 @@ class Tracker:
             if self.state is not _S.INIT:
                 self._change(_S.INIT, _R.RESET, None)
 
-    def _install_loaded_map(self, kf_map: KeyframeMap) -> None:
+    def _install_loaded_map(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:
         """Persistence seam: install a saved map and relocalise against it (RELOCALIZING,
         MAP_LOADED). The caller has checked the map's model fingerprint."""
         with self._call():
@@ -181,7 +193,14 @@ class Tracker:
                 )
             self._drop_map()
             self._input_size = None
-            self._keeper.load(kf_map)
+            self._keeper.load(kf_map, rebuild=rebuild)
+            if not self._keeper.extendable:
+                _log.warning(
+                    "map made by another preprocessing: tracking only, no new keyframes",
+                    map_preprocessing=kf_map.preprocessing,
+                    preprocessing=self._preparer.preprocessing.name,
+                    hint="load it with rebuild=True to extend it",
+                )
             # the backend may have been swapped for another runtime since the map was read
             self._keeper.convert_cache(self._backend.info.dtype, self._backend.info.device)
             self._monitor.set_reference(kf_map.keyframes[0].mean_confidence)
@@ -260,10 +279,12 @@ class Tracker:
         """
         start = time.perf_counter()
         with self._call():
+            kf_map = self._keeper.map
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
                 session_input_size=self._input_size,
-                map_resolution=None if self._keeper.map is None else self._keeper.map.resolution,
+                map_resolution=None if kf_map is None else kf_map.resolution,
+                map_preprocessing=None if kf_map is None else kf_map.preprocessing,
             )
             timings = {"preprocess": _ms(start)}
             index, self._frames = self._frames, self._frames + 1

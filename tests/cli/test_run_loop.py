@@ -21,7 +21,7 @@ from kvtracker_sdk.cli.session import OutputOptions, run_session
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.tracking.tracker import Tracker
 
-SIZE = (182, 252)  # the model resolution of d = 224 for 4:3 frames: no resize
+SIZE = (196, 252)  # the model resolution of d = 224 for 4:3 frames: no resize
 
 
 def frames(backend: SimulatedBackend, count: int, interrupt_at: int | None = None

@@ -19,9 +19,9 @@ from kvtracker_sdk.tracking.events import (
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, TrackingState
 
-# Rendering at the model resolution of d = 224 for 4:3 frames (182 x 252) skips the resize, and
+# Rendering at Pi3's model resolution of d = 224 for 4:3 frames (196 x 252) skips the resize, and
 # flat (untextured) frames cost ~nothing: the whole 3,000-frame TUM run takes a few seconds.
-SIZE = (182, 252)
+SIZE = (196, 252)
 WAIT_S = 120.0  # generous: a worker that never finishes fails the test instead of hanging it
 
 

@@ -7,7 +7,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from kvtracker_sdk.backends.preprocess import fit_box
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import (
     BBoxError,
@@ -18,13 +17,15 @@ from kvtracker_sdk.errors import (
     NonFiniteImageError,
     ResolutionChangedError,
 )
+from kvtracker_sdk.preprocess import fit_box
 from kvtracker_sdk.tracking.frame_input import FramePreparer
 
-H, W = 240, 320  # 4:3 input -> 182 x 252 at d = 224
+H, W = 240, 320  # 4:3 input -> 196 x 252 at d = 224 (Pi3, as KV-Tracker)
+MODEL = (196, 252)
 
 
 def _preparer(**config: object) -> FramePreparer:
-    return FramePreparer(TrackerConfig(resolution=224, **config), patch_size=14)
+    return FramePreparer(TrackerConfig(resolution=224, **config), patch_size=14, family="pi3")
 
 
 def _image(value: int = 100) -> np.ndarray:
@@ -34,15 +35,15 @@ def _image(value: int = 100) -> np.ndarray:
 def test_uint8_is_resized_to_model_resolution_and_never_aliases_the_input() -> None:
     image = _image()
     frame = _preparer().prepare(image, timestamp=1.5)
-    assert frame.image.shape == (182, 252, 3) and frame.image.dtype == np.uint8
+    assert frame.image.shape == (*MODEL, 3) and frame.image.dtype == np.uint8
     assert frame.input_size == (H, W) and frame.timestamp == 1.5 and frame.mask is None
-    same_size = np.full((182, 252, 3), 7, dtype=np.uint8)
+    same_size = np.full((*MODEL, 3), 7, dtype=np.uint8)
     prepared = _preparer().prepare(same_size).image
     assert not np.shares_memory(prepared, same_size)  # keyframes freeze their copy, not the user's
 
 
 def test_float_images_in_unit_range_are_accepted_and_rounded() -> None:
-    image = np.full((182, 252, 3), 128 / 255, dtype=np.float32)
+    image = np.full((*MODEL, 3), 128 / 255, dtype=np.float32)
     assert np.all(_preparer().prepare(image).image == 128)
     assert _preparer().prepare(image.astype(np.float16)).image.dtype == np.uint8
 
@@ -83,10 +84,12 @@ def test_bad_masks_raise_mask_error(mask: object, error: type[InputError]) -> No
 
 
 def test_tiny_mask_that_vanishes_at_model_resolution_is_refused() -> None:
-    mask = np.zeros((H, W), dtype=np.uint8)
-    mask[4, 4] = 255  # nearest-neighbour sampling (x1.32, x1.27) skips row 4 and column 4
+    mask = np.zeros((960, 1280), dtype=np.uint8)
+    # bilinear at x0.204 (rows) / x0.197 (columns) reads rows (1, 2), (6, 7), ... and columns
+    # (2, 3), (7, 8), ...: pixel (4, 4) touches no sample
+    mask[4, 4] = 255
     with pytest.raises(MaskError, match="too small"):
-        _preparer().prepare(_image(), mask=mask)
+        _preparer().prepare(np.zeros((960, 1280, 3), np.uint8), mask=mask)
 
 
 @pytest.mark.parametrize(
@@ -120,7 +123,7 @@ def test_object_mask_mode_blacks_out_the_background() -> None:
     mask = np.zeros((H, W), dtype=bool)
     mask[60:180, 80:240] = True
     frame = _preparer(mode="object").prepare(_image(200), mask=mask)
-    assert frame.mask is not None and frame.mask.shape == (182, 252)
+    assert frame.mask is not None and frame.mask.shape == MODEL
     assert np.all(frame.image[frame.mask] == 200)
     assert np.all(frame.image[~frame.mask] == 0)
     box_frame = _preparer(mode="object").prepare(_image(200), bbox=(80, 60, 240, 180))
@@ -134,11 +137,11 @@ def test_object_crop_mode_crops_around_the_box_dilated_and_at_model_aspect() -> 
     frame = _preparer(
         mode="object", object={"preprocessing": "crop", "crop_margin_px": 20}
     ).prepare(image, mask=mask)
-    assert frame.image.shape == (182, 252, 3)
-    # crop: 80 px wide box grown to 4:3 -> ~107 x 80 px, so the object spans ~40/107 of the width
-    white_columns = np.flatnonzero(frame.image[91, :, 0] > 127)
+    assert frame.image.shape == (*MODEL, 3)
+    # crop: 80 px wide box grown to 196:252 -> ~103 x 80 px: the object spans ~40/103 of the width
+    white_columns = np.flatnonzero(frame.image[98, :, 0] > 127)
     assert 0.3 < len(white_columns) / 252 < 0.45
-    assert frame.mask is not None and frame.mask[91, 126]  # the object is centred
+    assert frame.mask is not None and frame.mask[98, 126]  # the object is centred
 
 
 @settings(max_examples=200, deadline=None)
@@ -153,11 +156,11 @@ def test_crop_window_stays_inside_and_contains_the_box(
     x0: float, y0: float, w: float, h: float, margin: int
 ) -> None:
     box = (x0, y0, min(x0 + w, W), min(y0 + h, H))
-    left, top, right, bottom = fit_box(box, (H, W), margin=margin, aspect=182 / 252)
+    left, top, right, bottom = fit_box(box, (H, W), margin=margin, aspect=196 / 252)
     assert 0 <= left < right <= W and 0 <= top < bottom <= H
     # the box (dilated, when the image allows) lies inside the window
     assert left <= max(box[0] - margin, 0) + 1 and right >= min(box[2] + margin, W) - 1
     assert top <= max(box[1] - margin, 0) + 1 and bottom >= min(box[3] + margin, H) - 1
     if right - left < W and bottom - top < H:  # not clipped: the model's aspect, up to whole pixels
         rounding = 2.0 / (right - left) + 2.0 / (bottom - top)
-        assert (bottom - top) / (right - left) == pytest.approx(182 / 252, abs=0.01 + rounding)
+        assert (bottom - top) / (right - left) == pytest.approx(196 / 252, abs=0.01 + rounding)

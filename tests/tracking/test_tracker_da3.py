@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import MapModelMismatchError
+from kvtracker_sdk.io.map_file import read_map_info
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path
@@ -43,7 +44,9 @@ def test_da3_end_to_end_and_map_family(
     np.testing.assert_allclose(results[0].pose.T_world_cam, np.eye(4), atol=1e-6)  # type: ignore[union-attr]
     assert all(r.pose is not None and r.pose.is_rigid(atol=1e-4) for r in results)
     assert [r.frame_index for r in results if r.is_keyframe] == [0, 5, 10]
-    assert cache.tokens_per_frame == info.tokens_per_frame(182, 252) == 1 + 13 * 18
+    # DA3's own sizing: 224 is the longest side, 640x480 -> 168x224 (12 x 16 patches + camera)
+    assert cache.tokens_per_frame == info.tokens_per_frame(168, 224) == 1 + 12 * 16
+    assert read_map_info(tmp_path / "desk.kvmap").preprocessing == "da3-upper-bound-v1"
     assert all(0.0 <= r.confidence <= 1.0 for r in results)
 
     pi3 = torch_backend.TorchBackend.from_pretrained(

@@ -201,7 +201,7 @@ def test_the_config_is_the_saved_one_unless_overridden(sim_saved: Saved) -> None
         assert tracker.config is explicit
     with pytest.raises(ConfigError, match="saved in scene mode"):
         Tracker.from_map(path, backend, config={"mode": "object"})
-    with pytest.raises(MapModelMismatchError, match=r"resolution 224 \(model input 182x252\)"):
+    with pytest.raises(MapModelMismatchError, match=r"resolution 224 \(model input 196x252\)"):
         Tracker.from_map(path, backend, config={"resolution": 308})
     with pytest.raises(ConfigError):
         Tracker.from_map(path, backend, config={"no_such_field": 1})

@@ -48,7 +48,7 @@ def test_real_frames_run_end_to_end(frames: list[tuple[float, np.ndarray]], weig
     assert all(r.pose is not None and r.pose.is_rigid(atol=1e-4) for r in results)
     assert [r.frame_index for r in results if r.is_keyframe] == [0, 5, 10, 15]
     assert status.keyframe_ids == (0, 1, 2, 3) and cache.keyframe_ids == (0, 1, 2, 3)
-    assert cache.tokens_per_frame == backend.info.tokens_per_frame(182, 252)
+    assert cache.tokens_per_frame == backend.info.tokens_per_frame(196, 252)  # 640x480 at 224
     assert all(0.0 <= r.confidence <= 1.0 for r in results)
     assert [r.timestamp for r in results] == [stamp for stamp, _ in frames]
 

@@ -10,7 +10,7 @@ import pytest
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth
-from tests.tracking.sim_session import drive, make_tracker
+from tests.tracking.sim_session import SIZE, drive, make_tracker
 
 MAPPING_MODES = [pytest.param(False, id="sync"), pytest.param(True, id="async")]
 
@@ -110,7 +110,7 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
     if budget.get("max_cache_bytes") == "3.5 keyframes":
         per_keyframe = backend.info.layout.bytes_per_token(
             __import__("torch").float64
-        ) * backend.info.tokens_per_frame(182, 252)
+        ) * backend.info.tokens_per_frame(*SIZE)
         budget = {**budget, "max_cache_bytes": int(3.5 * per_keyframe)}
     limit = 4 if budget["max_keyframes"] else 3
     config = {"keyframing": {"budget": budget}, "threading": {"async_mapping": async_mapping}}

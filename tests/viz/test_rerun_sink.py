@@ -20,7 +20,7 @@ from kvtracker_sdk.viz.rerun_sink import RerunSink
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
-SIZE = (182, 252)
+SIZE = (196, 252)
 
 
 def _record(path: Path, frames: int, budget: int = 32) -> None:
