@@ -205,8 +205,8 @@ class TrackerConfig(_Section):
     """Model input side d; its meaning is the model family's official preprocessing
     (``kvtracker_sdk.preprocess``), aspect kept, sides multiples of the patch size (14):
 
-    * Pi3: a pixel budget, at most d² pixels, as KV-Tracker prepares frames (paper: 224, 308 or
-      518). 640x480 frames become 196x252 at 224, 266x350 at 308, 448x588 at 518.
+    * Pi3: a pixel budget, at most d² pixels, as KV-Tracker prepares frames (KV-Tracker paper:
+      224, 308 or 518). 640x480 frames become 196x252 at 224, 266x350 at 308, 448x588 at 518.
     * Depth Anything 3: the longest side, as DA3's ``upper_bound_resize`` (its ``process_res``).
       640x480 frames become 168x224 at 224, 378x504 at 504.
 

@@ -25,7 +25,7 @@ from kvtracker_sdk.types import HeadSet
 def test_defaults_are_the_paper_and_design_values() -> None:
     config = TrackerConfig()
     assert config.mode is TrackingMode.SCENE
-    assert config.resolution == 308
+    assert config.resolution is None  # the family's own: Pi3 308, DA3 504 (test_frame_input)
     assert config.keyframing.interval_frames == 50
     assert config.keyframing.view_angle_deg == 10.0
     assert config.rejection.ratio == 0.6

@@ -37,6 +37,7 @@ def describe_map(info: MapInfo, path: Path) -> dict[str, Any]:
         "fingerprint": info.fingerprint,
         "saved_by_runtime": backend.backend,
         "resolution_hw": list(info.resolution),
+        "preprocessing": info.preprocessing,
         "cache_dtype": info.dtype,
         "cache_layout": {
             "global_layers": list(info.layout.block_indices),
@@ -63,7 +64,8 @@ def _text(facts: dict[str, Any]) -> str:
         f"format     v{facts['format_version']}, saved by kvtracker-sdk {facts['sdk_version']} "
         f"on {facts['created_utc']}",
         f"model      {facts['model']} (family {facts['family']}, fingerprint {facts['fingerprint']})",
-        f"mode       {facts['mode']}, input {height}x{width}, cache {facts['cache_dtype']}",
+        f"mode       {facts['mode']}, input {height}x{width} ({facts['preprocessing']}), cache "
+        f"{facts['cache_dtype']}",
         f"keyframes  {facts['keyframes']} (ids {facts['keyframe_ids']}), generation "
         f"{facts['generation']}",
         f"cache      {facts['cache_bytes'] / 1e6:.1f} MB: {len(layout['global_layers'])} layers x "

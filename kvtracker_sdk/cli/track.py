@@ -39,7 +39,8 @@ def track(
     threads: Annotated[int | None, typer.Option(
         help="CPU threads for inference (torch). [default: torch's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
-        help="Model input side d (224, 308 or 518): at most d² pixels. [default: 308]")] = None,
+        help="Model input side d (224, 308, 504, 518): Pi3 at most d² pixels, DA3 the longest "
+             "side. [default: the family's, Pi3 308, DA3 504]")] = None,
     mode: Annotated[TrackingMode | None, typer.Option(
         help="scene: the camera in a static scene; object: a masked object. [default: scene]")] = None,
     masks: Annotated[Path | None, typer.Option(
@@ -57,6 +58,9 @@ def track(
         "--config", help="TrackerConfig as JSON; the options above override it.")] = None,
     load_map: Annotated[Path | None, typer.Option(
         help="Relocalise against a saved .kvmap instead of starting a new map.")] = None,
+    rebuild_map: Annotated[bool, typer.Option(
+        "--rebuild-map", help="With --load-map: add keyframes even to a map whose frames another "
+        "preprocessing made (an older SDK); else such a map is only tracked against.")] = False,
     save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file.")] = None,
     rerun: Annotated[Path | None, typer.Option(
         help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
@@ -95,7 +99,7 @@ def track(
     check_outputs(options)  # before the weights load and the first frame, not after the run
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
-        with _tracker(config, base, changes, chosen, load_map) as tracker:
+        with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map) as tracker:
             description = RunDescription(
                 "track", str(input_path), simulated=False,
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map)},
@@ -184,6 +188,8 @@ def _tracker(
     changes: dict[str, Any],
     backend: Any,
     load_map: Path | None,
+    *,
+    rebuild: bool = False,
 ) -> Any:
     """A new tracker with ``config``, or with ``--load-map`` one relocalising against the saved
     map (whose saved config is the base unless ``--config`` is given; the options change it)."""
@@ -192,7 +198,7 @@ def _tracker(
     if load_map is None:
         return Tracker(config, backend)
     override = base.updated(**changes) if base is not None else (changes or None)
-    return Tracker.from_map(load_map, backend, override)
+    return Tracker.from_map(load_map, backend, override, rebuild=rebuild)
 
 
 def _is_onnx_export(weights: str) -> bool:

@@ -87,7 +87,8 @@ def test_map_info_and_relocalising_against_the_saved_map(tracked: Path, tum: Pat
     facts = json.loads(info.stdout)
     run = json.loads((tracked / "run.json").read_text())
     assert facts["fingerprint"] == run["backend"]["fingerprint"]
-    assert facts["keyframes"] == run["map"]["keyframes"] and facts["resolution_hw"] == [182, 252]
+    assert facts["keyframes"] == run["map"]["keyframes"] and facts["resolution_hw"] == [196, 252]
+    assert facts["preprocessing"] == "pi3-kvtracker-v1"
     text = invoke("map", "info", tracked / "desk.kvmap")
     assert "fingerprint " + facts["fingerprint"] in text.stdout
 

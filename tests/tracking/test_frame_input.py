@@ -18,7 +18,7 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
 )
 from kvtracker_sdk.preprocess import fit_box
-from kvtracker_sdk.tracking.frame_input import FramePreparer
+from kvtracker_sdk.tracking.frame_input import FramePreparer, resolve_resolution
 
 H, W = 240, 320  # 4:3 input -> 196 x 252 at d = 224 (Pi3, as KV-Tracker)
 MODEL = (196, 252)
@@ -164,3 +164,16 @@ def test_crop_window_stays_inside_and_contains_the_box(
     if right - left < W and bottom - top < H:  # not clipped: the model's aspect, up to whole pixels
         rounding = 2.0 / (right - left) + 2.0 / (bottom - top)
         assert (bottom - top) / (right - left) == pytest.approx(196 / 252, abs=0.01 + rounding)
+
+
+@pytest.mark.parametrize(
+    ("family", "side", "size"),
+    [("pi3", 308, (266, 350)), ("simulated", 308, (266, 350)), ("da3", 504, (378, 504))],
+)
+def test_an_unset_resolution_is_the_familys_default(
+    family: str, side: int, size: tuple[int, int]
+) -> None:
+    assert resolve_resolution(TrackerConfig(), family).resolution == side
+    assert resolve_resolution(TrackerConfig(resolution=224), family).resolution == 224
+    preparer = FramePreparer(TrackerConfig(), patch_size=14, family=family)
+    assert preparer.prepare(np.zeros((480, 640, 3), np.uint8)).image.shape[:2] == size
