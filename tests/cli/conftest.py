@@ -16,7 +16,7 @@ def golden_weights() -> Path:
 
 
 SIMULATED_FRAMES = 24  # frames of the simulated orbit written as PNGs for `kvtracker track`
-SIMULATED_SIZE = (182, 252)  # the model resolution of d = 224 for 4:3 frames: no resize
+SIMULATED_SIZE = (196, 252)  # Pi3's model resolution of d = 224 for 4:3 frames: no resize
 
 
 @pytest.fixture(scope="module")
