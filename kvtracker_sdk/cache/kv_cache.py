@@ -128,6 +128,28 @@ class KVCache:
         cache._keyframe_ids = [int(i) for i in keyframe_ids]
         return cache
 
+    @classmethod
+    def preallocated(
+        cls,
+        layout: CacheLayout,
+        tokens_per_frame: int,
+        keyframe_ids: Sequence[int],
+        *,
+        dtype: torch.dtype,
+        spare_frames: int = 2,
+    ) -> KVCache:
+        """A CPU cache listing ``keyframe_ids`` whose K/V are not written yet: the caller fills
+        ``buffers(i)[:, :, :length]`` next (a map loader reads a file straight into place,
+        without an intermediate copy)."""
+        ids = [int(i) for i in keyframe_ids]
+        if len(set(ids)) != len(ids):
+            raise CacheError(f"keyframe ids must be distinct, got {ids}")
+        cache = cls(
+            layout, tokens_per_frame, dtype=dtype, capacity_frames=len(ids) + max(1, spare_frames)
+        )
+        cache._keyframe_ids = ids
+        return cache
+
     # ------------------------------------------------------------------ properties
     @property
     def keyframe_ids(self) -> tuple[int, ...]:

@@ -7,8 +7,9 @@ bytes that fail the header checks, and is refused without being executed.
 Saving writes a temporary file beside the target, fsyncs it and ``os.replace``-s it over the
 target (then fsyncs the directory): the path holds the old map or the complete new one, never
 half of one, even if the process dies mid-write. Loading validates the whole header before
-touching tensor data, memory-maps the file (safetensors ``safe_open``), verifies every tensor's
-sha256, and copies the K/V once into the cache's preallocated buffers.
+touching tensor data, then reads every tensor through the same open descriptor (never a memory
+map, see ``map_reader``) straight into its final buffer — the K/V into the cache's preallocated
+buffers — and verifies every tensor's sha256.
 
 Errors: MapFormatError (not a map / malformed header), MapVersionError (too old or too new),
 MapModelMismatchError (another model, family, layout or resolution), MapCorruptedError
@@ -18,14 +19,13 @@ MapModelMismatchError (another model, family, layout or resolution), MapCorrupte
 from __future__ import annotations
 
 import os
-import stat
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError, safe_open
+from safetensors import SafetensorError
 from safetensors.torch import save_file
 
 from kvtracker_sdk._version import __version__
@@ -33,20 +33,15 @@ from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import (
     BackendMismatchError,
-    MapCorruptedError,
     MapFormatError,
     MapIOError,
     MapModelMismatchError,
 )
 from kvtracker_sdk.io.atomic import atomic_path
 from kvtracker_sdk.io.map_format import MapInfo, encode_metadata, loads_strict, parse_header
-from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_VERSION, MAX_HEADER_BYTES
-from kvtracker_sdk.io.map_tensors import (
-    map_from_tensors,
-    map_to_tensors,
-    sha256_of,
-)
-from kvtracker_sdk.io.map_tensors import verify_checksums as verify_tensor_checksums
+from kvtracker_sdk.io.map_reader import MapFile, open_map_file, read_map_tensors
+from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_VERSION
+from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
@@ -164,38 +159,16 @@ def save_map(
 
 
 # ---------------------------------------------------------------------------------- loading
-def _read_header(path: PathLike) -> tuple[MapInfo, dict[str, str]]:
+def _read_header(file: MapFile) -> tuple[MapInfo, dict[str, int]]:
     """Read and validate the header only (at most MAX_HEADER_BYTES, never tensor data)."""
-    source = str(path)
-    try:
-        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO or device could block a read
-            raise MapFormatError(f"{source} is not a regular file")
-        with open(path, "rb") as handle:
-            file_size = os.fstat(handle.fileno()).st_size
-            prefix = handle.read(8)
-            if len(prefix) < 8:
-                raise MapFormatError(
-                    f"{source} is not a kvtracker map: {file_size} bytes is too short"
-                )
-            header_size = int.from_bytes(prefix, "little")
-            if not 2 <= header_size <= MAX_HEADER_BYTES:
-                raise MapFormatError(
-                    f"{source} is not a kvtracker map: its first 8 bytes give a header of "
-                    f"{header_size} bytes, outside [2, {MAX_HEADER_BYTES}] (a pickle, a zip, ...?)"
-                )
-            if 8 + header_size > file_size:
-                raise MapCorruptedError(
-                    f"{source} is truncated inside its {header_size}-byte header"
-                )
-            header = handle.read(header_size)
-    except OSError as exc:
-        raise MapIOError(f"cannot read map {source}: {exc}") from exc
-    return parse_header(header, file_size=file_size, source=source)
+    info, _, offsets = parse_header(file.read_header(), file_size=file.size, source=file.source)
+    return info, offsets
 
 
 def read_map_info(path: PathLike) -> MapInfo:
     """The validated header of the map at ``path``, without reading any tensor data."""
-    return _read_header(path)[0]
+    with open_map_file(path) as file:
+        return _read_header(file)[0]
 
 
 def _describe(backend: BackendInfo) -> str:
@@ -242,7 +215,8 @@ def load_map(
     expected_resolution: tuple[int, int] | None = None,
     verify_checksums: bool = True,
 ) -> LoadedMap:
-    """Load the map at ``path``: header checks, model check, memory-mapped read, checksums.
+    """Load the map at ``path``: header checks, model check, read through one descriptor,
+    checksums (``io.map_reader``).
 
     With ``expected_backend`` the map must come from the same model (see
     :func:`check_map_compatible`; checked before any tensor is read) and the cache is returned
@@ -250,26 +224,19 @@ def load_map(
     (H, W) must match the map's. ``verify_checksums=False`` skips hashing the tensor data
     (about twice as fast; the header and sizes are still checked).
     """
-    info, metadata = _read_header(path)
-    source = str(path)
-    if expected_backend is not None:
-        check_map_compatible(info, expected_backend, resolution=expected_resolution)
-    try:
-        with safe_open(source, framework="pt") as reader:
-            if reader.metadata() != metadata:  # the file was replaced since its header was read
-                raise MapCorruptedError(f"{source} changed while it was being loaded")
-            tensors = {name: reader.get_tensor(name) for name in info.tensor_schema()}
-    except (SafetensorError, OSError, RuntimeError, ValueError) as exc:
-        raise MapCorruptedError(
-            f"{source}: safetensors cannot read the tensor data: {exc}"
-        ) from exc
+    with open_map_file(path) as file:
+        info, offsets = _read_header(file)
+        if expected_backend is not None:
+            check_map_compatible(info, expected_backend, resolution=expected_resolution)
+        tensors, cache, digests = read_map_tensors(file, info, offsets, verify=verify_checksums)
+    source = file.source
     if verify_checksums:
-        verify_tensor_checksums(tensors, info.tensor_sha256, source)
+        check_digests(digests, info.tensor_sha256, source)
     dtype, device = None, None
     if expected_backend is not None:  # hand back a cache that backend can use as is
         if expected_backend.dtype in CACHE_DTYPES:
             dtype = getattr(torch, expected_backend.dtype)
         device = expected_backend.device
-    keyframe_map = map_from_tensors(tensors, info, source, dtype=dtype, device=device)
+    keyframe_map = map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
     _log.info("map loaded", path=source, keyframes=info.num_keyframes, verified=verify_checksums)
     return LoadedMap(keyframe_map=keyframe_map, info=info)

@@ -363,10 +363,13 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
     )
 
 
-def parse_header(header: bytes, *, file_size: int, source: str) -> tuple[MapInfo, dict[str, str]]:
+def parse_header(
+    header: bytes, *, file_size: int, source: str
+) -> tuple[MapInfo, dict[str, str], dict[str, int]]:
     """Validate a map's raw JSON header (the ``n`` bytes after the length prefix).
 
-    Returns the MapInfo and the raw ``__metadata__``. Checks, in order: JSON well-formed, a
+    Returns the MapInfo, the raw ``__metadata__`` and each tensor's first byte in the file
+    (counted from the start of the file, length prefix included). Checks, in order: JSON well-formed, a
     ``__metadata__`` of strings, format and version, header checksum, fields, then the tensor
     table against the declared layout and the file's data section
     (``file_size - 8 - len(header)`` bytes). Raises the typed map errors only.
@@ -381,5 +384,7 @@ def parse_header(header: bytes, *, file_size: int, source: str) -> tuple[MapInfo
         )
     info = decode_metadata(metadata, file_size=file_size, source=source)
     data_size = file_size - 8 - len(header)
-    check_tensor_table(table, info.tensor_schema(), info.tensor_sha256, data_size, source)
-    return info, metadata
+    schema = info.tensor_schema()
+    check_tensor_table(table, schema, info.tensor_sha256, data_size, source)
+    offsets = {name: 8 + len(header) + table[name]["data_offsets"][0] for name in schema}
+    return info, metadata, offsets

@@ -2,10 +2,10 @@
 
 The tensor names, dtypes and shapes are those of ``map_schema`` (one stacked tensor per keyframe
 attribute, one K and one V tensor per cached layer). Saving snapshots the cache under its lock
-into contiguous CPU tensors; loading copies every keyframe array out of the memory-mapped file
-(small next to the K/V) and lets ``KVCache.from_layers`` copy the K/V into its preallocated
-buffers, so nothing the caller keeps points into the file's mapping — a file replaced or
-truncated later cannot fault a running tracker.
+into contiguous CPU tensors. Loading (``map_reader`` reads the file) rebuilds the keyframes
+from their tensors, each keyframe with its own copy of its arrays, around the K/V cache that the
+reader filled in place (``map_from_parts``); ``map_from_tensors`` does the same from K/V
+tensors, copying them once into a new cache.
 """
 
 from __future__ import annotations
@@ -37,7 +37,14 @@ from kvtracker_sdk.io.map_schema import (
     layer_value,
 )
 
-__all__ = ["map_from_tensors", "map_to_tensors", "sha256_of", "verify_checksums"]
+__all__ = [
+    "check_digests",
+    "map_from_parts",
+    "map_from_tensors",
+    "map_to_tensors",
+    "sha256_of",
+    "verify_checksums",
+]
 
 # hashlib releases the GIL on large buffers, so tensors hash in parallel; 4 threads saturate
 # memory bandwidth on common machines.
@@ -56,14 +63,18 @@ def sha256_of(tensors: Mapping[str, torch.Tensor]) -> dict[str, str]:
         return dict(zip(tensors, digests, strict=True))
 
 
+def check_digests(actual: Mapping[str, str], expected: Mapping[str, str], source: str) -> None:
+    """Raise MapCorruptedError naming every tensor whose digest differs from ``expected``."""
+    bad = sorted(name for name, digest in expected.items() if actual.get(name) != digest)
+    if bad:
+        raise MapCorruptedError(f"{source}: checksum mismatch in {len(bad)} tensor(s): {bad[:6]}")
+
+
 def verify_checksums(
     tensors: Mapping[str, torch.Tensor], expected: Mapping[str, str], source: str
 ) -> None:
     """Raise MapCorruptedError naming every tensor whose bytes do not match ``expected``."""
-    actual = sha256_of(tensors)
-    bad = sorted(name for name, digest in expected.items() if actual.get(name) != digest)
-    if bad:
-        raise MapCorruptedError(f"{source}: checksum mismatch in {len(bad)} tensor(s): {bad[:6]}")
+    check_digests(sha256_of(tensors), expected, source)
 
 
 # ---------------------------------------------------------------------------------- saving
@@ -175,7 +186,6 @@ def map_from_tensors(
     The K/V are copied once into the cache's preallocated buffers; with ``dtype``/``device``
     the cache is then converted (one more copy, only when they differ from the file's).
     """
-    keyframes = _keyframes(tensors, info, source)
     layers = range(info.layout.num_layers)
     try:
         cache = KVCache.from_layers(
@@ -187,6 +197,21 @@ def map_from_tensors(
         )
     except CacheError as exc:  # the schema check makes this unreachable for valid headers
         raise MapCorruptedError(f"{source}: the K/V tensors do not form a cache: {exc}") from exc
+    return map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
+
+
+def map_from_parts(
+    tensors: Mapping[str, torch.Tensor],
+    cache: KVCache,
+    info: MapInfo,
+    source: str,
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> KeyframeMap:
+    """Rebuild the KeyframeMap from a file's keyframe tensors and its K/V already in ``cache``
+    (converted to ``dtype``/``device`` when they differ from the file's)."""
+    keyframes = _keyframes(tensors, info, source)
     if (dtype is not None and dtype != cache.dtype) or (
         device is not None and torch.device(device) != cache.device
     ):
