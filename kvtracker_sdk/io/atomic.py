@@ -8,11 +8,15 @@ previous file untouched and removes the temporary one.
 A process killed mid-write cannot remove its temporary file. The next successful write of the
 same target removes such leftovers once they are older than ``STALE_TEMP_SECONDS`` (an hour): a
 concurrent writer's temporary file is being written, so it is always younger than that.
+
+Temporary names add 18 bytes to the target's name; for a name that would then exceed the
+filesystem's limit (255 bytes on most), a digest of the name stands in for it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import re
 import secrets
@@ -25,10 +29,28 @@ __all__ = ["STALE_TEMP_SECONDS", "atomic_path", "atomic_write"]
 
 STALE_TEMP_SECONDS = 3600.0
 _TOKEN_BYTES = 6  # the temporary name's random part: 12 hex digits
+_ADDED_BYTES = 2 * _TOKEN_BYTES + 6  # ".", ".", the hex digits and ".tmp"
+
+
+def _temporary_stem(target: Path) -> str:
+    """What the temporary names of ``target`` start with: the target's own name, or — when that
+    would not fit the filesystem's name limit with the 18 added bytes — a digest of it (still
+    one per target, so stale leftovers of ``target`` and only of it are recognised)."""
+    name = target.name
+    if len(os.fsencode(name)) + _ADDED_BYTES <= _name_max(target.parent):
+        return name
+    return f"kvtmp-{hashlib.sha256(os.fsencode(name)).hexdigest()[:32]}"
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):  # no pathconf (Windows) or no such folder
+        return 255
 
 
 def _temporary_path(target: Path) -> Path:
-    return target.with_name(f".{target.name}.{secrets.token_hex(_TOKEN_BYTES)}.tmp")
+    return target.with_name(f".{_temporary_stem(target)}.{secrets.token_hex(_TOKEN_BYTES)}.tmp")
 
 
 @contextlib.contextmanager
@@ -91,7 +113,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 def _remove_stale_temporaries(target: Path) -> None:
     """Remove temporary files of ``target`` left by killed writers (see the module docstring)."""
-    pattern = re.compile(rf"\.{re.escape(target.name)}\.[0-9a-f]{{{2 * _TOKEN_BYTES}}}\.tmp")
+    stem = re.escape(_temporary_stem(target))
+    pattern = re.compile(rf"\.{stem}\.[0-9a-f]{{{2 * _TOKEN_BYTES}}}\.tmp")
     cutoff = time.time() - STALE_TEMP_SECONDS
     with contextlib.suppress(OSError):  # best effort: the save itself has succeeded
         for entry in os.scandir(target.parent):

@@ -4,9 +4,10 @@ Format: safetensors (``map_schema`` lists the tensors, ``map_format`` the header
 ever read or written: a pickle, a zip (``torch.save``) or any other file renamed ``.kvmap`` is just
 bytes that fail the header checks, and is refused without being executed.
 
-Saving writes a temporary file beside the target, fsyncs it and ``os.replace``-s it over the
-target (then fsyncs the directory): the path holds the old map or the complete new one, never
-half of one, even if the process dies mid-write. Loading validates the whole header before
+Saving streams the file (``safetensors_writer``) into a temporary file beside the target,
+fsyncs it and ``os.replace``-s it over the target (then fsyncs the directory): the path holds the
+old map or the complete new one, never half of one, even if the process dies mid-write; the
+temporary file of a killed save is removed by a later save once stale (``atomic``). Loading validates the whole header before
 touching tensor data, then reads every tensor through the same open descriptor (never a memory
 map, see ``map_reader``) straight into its final buffer — the K/V into the cache's preallocated
 buffers — and verifies every tensor's sha256.
@@ -18,30 +19,33 @@ MapModelMismatchError (another model, family, layout or resolution), MapCorrupte
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
+import time
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import save_file
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import (
     BackendMismatchError,
+    MapError,
     MapFormatError,
     MapIOError,
     MapModelMismatchError,
 )
-from kvtracker_sdk.io.atomic import atomic_path
+from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_write
 from kvtracker_sdk.io.map_format import MapInfo, encode_metadata, loads_strict, parse_header
 from kvtracker_sdk.io.map_reader import MapFile, open_map_file, read_map_tensors
-from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_VERSION
+from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_NAME, FORMAT_VERSION
 from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
+from kvtracker_sdk.io.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
@@ -128,6 +132,28 @@ def _saved_info(
     )
 
 
+# safetensors' own temporary name (``save_file`` of SDK versions before issue 12 wrote one beside
+# the map and renamed it; a killed save left it behind)
+_SAFETENSORS_TEMPORARY = re.compile(r"\.tmp[A-Za-z0-9]{6}")
+
+
+def _remove_safetensors_leftovers(folder: Path) -> None:
+    """Remove stale ``.tmpXXXXXX`` files in ``folder`` whose header says they are kvtracker maps
+    (left by saves killed inside safetensors' ``save_file``); anything else is not ours."""
+    cutoff = time.time() - STALE_TEMP_SECONDS
+    with contextlib.suppress(OSError):  # best effort: the save itself has succeeded
+        for entry in os.scandir(folder):
+            if not _SAFETENSORS_TEMPORARY.fullmatch(entry.name):
+                continue
+            with contextlib.suppress(OSError, MapError):
+                if entry.stat().st_mtime >= cutoff:  # a concurrent writer's: still being written
+                    continue
+                with open_map_file(entry.path) as file:
+                    is_map = f'"format":"{FORMAT_NAME}"'.encode() in file.read_header()
+                if is_map:
+                    os.unlink(entry.path)
+
+
 def save_map(
     path: PathLike,
     keyframe_map: KeyframeMap,
@@ -149,11 +175,11 @@ def save_map(
     tensors = map_to_tensors(keyframe_map, info.resolution)
     info = replace(info, tensor_sha256=sha256_of(tensors))
     try:
-        with atomic_path(target) as tmp:
-            save_file(tensors, tmp, metadata=encode_metadata(info))
-            size = tmp.stat().st_size
-    except (OSError, SafetensorError) as exc:
+        with atomic_write(target, binary=True) as handle:
+            size = write_safetensors(handle, tensors, encode_metadata(info))
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
         raise MapIOError(f"cannot write map {target}: {exc}") from exc
+    _remove_safetensors_leftovers(target.parent)
     _log.info("map saved", path=str(target), keyframes=info.num_keyframes, bytes=size)
     return replace(info, file_size=size)
 

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
@@ -85,8 +86,7 @@ def temporaries(folder: Path) -> list[Path]:
 
 
 def assert_no_stray_map(folder: Path) -> None:
-    """Only the target is named like a map; temporaries (ours, and the one safetensors writes
-    before renaming it onto ours) are hidden files."""
+    """Only the target is named like a map; the save's temporary file is hidden."""
     assert [p.name for p in folder.glob("*.kvmap")] == ["scene.kvmap"]
     for tmp in temporaries(folder):
         assert tmp.name.startswith(".") and not tmp.name.endswith(".kvmap"), tmp.name
@@ -165,11 +165,11 @@ def test_a_failing_write_keeps_the_old_map_and_removes_the_temporary(
 ) -> None:
     target, old = save_old(tmp_path)
 
-    def half_write(tensors: object, filename: Path, metadata: object = None) -> None:
-        Path(filename).write_bytes(target.read_bytes()[:1000])
+    def half_write(handle: BinaryIO, tensors: object, metadata: object) -> int:
+        handle.write(target.read_bytes()[:1000])
         raise failure
 
-    monkeypatch.setattr(map_file, "save_file", half_write)
+    monkeypatch.setattr(map_file, "write_safetensors", half_write)
     expected = MapIOError if isinstance(failure, OSError) else KeyboardInterrupt
     with pytest.raises(expected):
         save_map(
