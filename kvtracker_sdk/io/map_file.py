@@ -33,6 +33,7 @@ import torch
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
+from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import (
     BackendMismatchError,
     MapError,
@@ -41,9 +42,15 @@ from kvtracker_sdk.errors import (
     MapModelMismatchError,
 )
 from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_write
-from kvtracker_sdk.io.map_format import MapInfo, encode_metadata, loads_strict, parse_header
+from kvtracker_sdk.io.map_format import (
+    MapInfo,
+    encode_metadata,
+    gauge_problem,
+    loads_strict,
+    parse_header,
+)
 from kvtracker_sdk.io.map_reader import MapFile, open_map_file, read_map_tensors
-from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_NAME, FORMAT_VERSION
+from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_NAME, FORMAT_VERSION, MAX_GENERATION
 from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
 from kvtracker_sdk.io.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
@@ -112,6 +119,15 @@ def _saved_info(
     if not isinstance(config, dict):
         raise MapFormatError("cannot save map: the tracker config must be a JSON object")
     mode = mode.value if isinstance(mode, Enum) else mode
+    # what the loader refuses is refused here too: the SDK never writes a map it cannot load
+    if str(mode) not in {m.value for m in TrackingMode}:
+        raise MapFormatError(f"cannot save map: mode {mode!r} is not one of scene, object")
+    if not 0 <= keyframe_map.generation <= MAX_GENERATION:
+        raise MapFormatError(
+            f"cannot save map: generation {keyframe_map.generation} is outside [0, {MAX_GENERATION}]"
+        )
+    if problem := gauge_problem(keyframe_map.gauge):
+        raise MapFormatError(f"cannot save map: {problem}")
     return MapInfo(
         format_version=FORMAT_VERSION,
         sdk_version=sdk_version,

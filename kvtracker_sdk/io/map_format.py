@@ -28,25 +28,30 @@ import numpy as np
 
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.kv_cache import CacheLayout
+from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapVersionError
+from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
     LEGACY_PREPROCESSING,
+    MAX_GENERATION,
     OLDEST_READABLE_VERSION,
     PREPROCESSING_FIELD,
+    RIGID_ATOL,
     TensorSpec,
     check_tensor_table,
     layer_key,
     tensor_schema,
 )
 
-__all__ = ["MapInfo", "encode_metadata", "metadata_digest", "parse_header"]
+__all__ = ["MapInfo", "encode_metadata", "gauge_problem", "metadata_digest", "parse_header"]
 
 _DIGEST_KEY = "metadata_sha256"
 _JSON_NAMES: dict[type, str] = {dict: "object", list: "array"}
+_MODES = frozenset(mode.value for mode in TrackingMode)
 _REQUIRED = (
     "format", "format_version", "sdk_version", "created_utc", "backend", "resolution", "dtype",
     "layout", "mode", "tracker_config", "keyframe_ids", "cache_keyframe_ids", "generation",
@@ -286,6 +291,15 @@ def _decode_ids(fields: _Fields, key: str) -> tuple[int, ...]:
     return ids
 
 
+def gauge_problem(gauge: Sim3) -> str | None:
+    """Why ``gauge`` cannot be stored in a map (its rotation is not one), or None."""
+    T = np.eye(4)
+    T[:3, :3] = gauge.rotation
+    if not check_rigid(T, atol=RIGID_ATOL):
+        return f"gauge rotation is not orthonormal with determinant +1: {gauge.rotation.tolist()}"
+    return None
+
+
 def _decode_gauge(fields: _Fields) -> Sim3:
     raw = fields.json("gauge", dict)
     rotation, translation, scale = raw.get("rotation"), raw.get("translation"), raw.get("scale")
@@ -293,9 +307,26 @@ def _decode_gauge(fields: _Fields) -> Sim3:
         raise fields.fail("gauge rotation must be 3x3 finite numbers")
     if not _is_vector(translation, 3) or not _is_finite_number(scale) or scale <= 0:
         raise fields.fail("gauge translation must be 3 finite numbers and its scale finite and > 0")
-    return Sim3(
+    gauge = Sim3(
         np.array(rotation, dtype=np.float64), np.array(translation, dtype=np.float64), float(scale)
     )
+    if problem := gauge_problem(gauge):
+        raise fields.fail(problem)
+    return gauge
+
+
+def _decode_mode(fields: _Fields) -> str:
+    mode = fields.text("mode")
+    if mode not in _MODES:
+        raise fields.fail(f"mode must be one of {sorted(_MODES)}, got {mode[:40]!r}")
+    return mode
+
+
+def _decode_generation(fields: _Fields) -> int:
+    generation = fields.decimal("generation")
+    if generation > MAX_GENERATION:
+        raise fields.fail(f"generation {generation} is above the largest valid {MAX_GENERATION}")
+    return generation
 
 
 def _decode_string_map(fields: _Fields, key: str) -> dict[str, str]:
@@ -350,11 +381,11 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         resolution=_decode_resolution(fields, backend, tokens_per_frame),
         dtype=dtype,
         tokens_per_frame=tokens_per_frame,
-        mode=fields.text("mode"),
+        mode=_decode_mode(fields),
         tracker_config_json=fields.text("tracker_config"),
         keyframe_ids=keyframe_ids,
         cache_keyframe_ids=cache_keyframe_ids,
-        generation=fields.decimal("generation"),
+        generation=_decode_generation(fields),
         gauge=_decode_gauge(fields),
         user_metadata=MappingProxyType(_decode_string_map(fields, "user_metadata")),
         tensor_sha256=MappingProxyType(_decode_string_map(fields, "tensor_sha256")),

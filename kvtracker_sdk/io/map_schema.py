@@ -40,9 +40,11 @@ __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "LEGACY_PREPROCESSING",
+    "MAX_GENERATION",
     "MAX_HEADER_BYTES",
     "OLDEST_READABLE_VERSION",
     "PREPROCESSING_FIELD",
+    "RIGID_ATOL",
     "TensorSpec",
     "check_tensor_table",
     "layer_key",
@@ -59,6 +61,15 @@ PREPROCESSING_FIELD = "preprocessing"
 # Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
 # A pickle or a zip read as a header length gives a number far above this.
 MAX_HEADER_BYTES = 8 * 1024 * 1024
+
+# A map's generation counts its mapping passes. Above 2**53 - 1 a JSON reader that holds numbers
+# as doubles (JavaScript, most JSON tools) cannot represent it exactly; no session gets near it,
+# so a larger value is a tampered header. Saving refuses it too: the SDK never writes a map it
+# would refuse to load.
+MAX_GENERATION = 2**53 - 1
+# Saved keyframe poses and the gauge rotation must be rigid to this tolerance (a network's float32
+# rotations are orthonormal to ~1e-7; a tampered or scaled pose is far off).
+RIGID_ATOL = 1e-4
 
 # cache dtype name (as in BackendInfo.dtype) -> (safetensors dtype code, bytes per element)
 CACHE_DTYPES: dict[str, tuple[str, int]] = {

@@ -22,6 +22,7 @@ import torch
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError
+from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.io.map_format import MapInfo
 from kvtracker_sdk.io.map_schema import (
     CONFIDENCE,
@@ -31,6 +32,7 @@ from kvtracker_sdk.io.map_schema import (
     LOCAL_POINTS,
     MASK,
     MEAN_CONFIDENCE,
+    RIGID_ATOL,
     T_WORLD_CAM,
     TIMESTAMP,
     layer_key,
@@ -39,6 +41,7 @@ from kvtracker_sdk.io.map_schema import (
 
 __all__ = [
     "check_digests",
+    "keyframe_problem",
     "map_from_parts",
     "map_from_tensors",
     "map_to_tensors",
@@ -75,6 +78,23 @@ def verify_checksums(
 ) -> None:
     """Raise MapCorruptedError naming every tensor whose bytes do not match ``expected``."""
     check_digests(sha256_of(tensors), expected, source)
+
+
+# ---------------------------------------------------------------------------------- checks
+def keyframe_problem(
+    T_world_cam: np.ndarray, confidence_map: np.ndarray, mean_confidence: float
+) -> str | None:
+    """What makes a keyframe unfit for a map file (checked on saving and on loading), or None:
+    a pose that is not a rigid transform, or confidences that are not finite and in [0, 1]."""
+    if not check_rigid(T_world_cam, atol=RIGID_ATOL):
+        return "pose T_world_cam is not a finite rigid transform"
+    confidence = np.asarray(confidence_map)
+    if not (np.all(np.isfinite(confidence)) and confidence.min(initial=0.0) >= 0.0
+            and confidence.max(initial=0.0) <= 1.0):  # fmt: skip
+        return "confidence map is not finite and within [0, 1]"
+    if not (math.isfinite(mean_confidence) and 0.0 <= mean_confidence <= 1.0):
+        return f"mean confidence {mean_confidence!r} is not within [0, 1]"
+    return None
 
 
 # ---------------------------------------------------------------------------------- saving
@@ -117,8 +137,9 @@ def map_to_tensors(
     for kf in kfs:
         if np.asarray(kf.image).dtype != np.uint8:
             raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} image is not uint8")
-        if not np.all(np.isfinite(kf.T_world_cam)):
-            raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} pose is not finite")
+        problem = keyframe_problem(kf.T_world_cam, kf.confidence_map, kf.mean_confidence)
+        if problem:  # the loader's checks: the SDK never writes a map it would refuse
+            raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} {problem}")
     masks = [
         np.zeros((h, w), np.uint8)
         if kf.mask is None
@@ -149,14 +170,16 @@ def _keyframes(
     """Keyframes with their own copies of the arrays (never views of the file mapping)."""
     poses = tensors[T_WORLD_CAM].numpy()
     has_mask = tensors[HAS_MASK].numpy()
-    if not np.all(np.isfinite(poses)):  # the same check as on saving
-        raise MapCorruptedError(f"{source}: a keyframe pose is not finite")
     if not np.all((has_mask == 0) | (has_mask == 1)):
         raise MapCorruptedError(f"{source}: mask presence flags must be 0 or 1")
     images, masks = tensors[IMAGE].numpy(), tensors[MASK].numpy()
     confidence, points = tensors[CONFIDENCE].numpy(), tensors[LOCAL_POINTS].numpy()
     stamps, frames = tensors[TIMESTAMP].numpy(), tensors[FRAME_INDEX].numpy()
     mean_confidence = tensors[MEAN_CONFIDENCE].numpy()
+    for i, keyframe_id in enumerate(info.keyframe_ids):  # the same checks as on saving
+        problem = keyframe_problem(poses[i], confidence[i], float(mean_confidence[i]))
+        if problem:
+            raise MapCorruptedError(f"{source}: keyframe {keyframe_id} {problem}")
     return tuple(
         Keyframe(
             keyframe_id=keyframe_id,

@@ -97,12 +97,33 @@ def save_tracker_map(
 
 def _saved_config(info: MapInfo, source: str) -> TrackerConfig:
     try:
-        return TrackerConfig.from_dict(json.loads(info.tracker_config_json))
+        config = TrackerConfig.from_dict(json.loads(info.tracker_config_json))
     except ConfigError as exc:  # e.g. a map from a newer SDK with more settings
         raise MapFormatError(
             f"{source}: the tracker config saved in the map is not valid for this SDK ({exc}); "
             "pass config=TrackerConfig(...) to choose one"
         ) from exc
+    if config.mode.value != info.mode:  # both come from the file: it contradicts itself
+        raise MapFormatError(
+            f"{source}: the header says {info.mode} mode, the saved tracker config "
+            f"{config.mode.value} mode"
+        )
+    return config
+
+
+def _fits_side(resolution: tuple[int, int], side: int, patch: int) -> bool:
+    """Whether any preprocessing (``kvtracker_sdk.preprocess.sizing``) could give (H, W) at a
+    resolution ``side`` — a necessary condition that holds for every pipeline, so a genuine map is
+    never refused. Upper bound: at most side² pixels for Pi3's and the legacy sizing (the legacy
+    one may exceed it only with a side clamped to one patch), (side + patch/2)² for DA3's longest
+    side. Lower bound: Pi3's and the legacy sizing round or floor each side by less than a patch
+    below the budget, so (H + patch)(W + patch) > side²; DA3's longest side is within patch/2 of
+    ``side``."""
+    height, width = resolution
+    below = height * width <= (side + patch) ** 2 or min(height, width) <= patch
+    longest = max(height, width)
+    above = (height + patch) * (width + patch) > side * side or 2 * longest >= 2 * side - patch
+    return below and above
 
 
 def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> TrackerConfig:
@@ -125,6 +146,14 @@ def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> Trac
             f"{config.mode.value} mode"
         )
     saved_side = json.loads(info.tracker_config_json).get("resolution")
+    if isinstance(saved_side, int) and not _fits_side(
+        info.resolution, saved_side, info.backend.patch_size
+    ):
+        height, width = info.resolution
+        raise MapFormatError(
+            f"{source}: its saved tracker config has resolution {saved_side}, which cannot give "
+            f"its {height}x{width} keyframes (patch {info.backend.patch_size})"
+        )
     if config.resolution is None and isinstance(saved_side, int):
         config = config.updated(resolution=saved_side)  # unset: the map's
     if isinstance(saved_side, int) and saved_side != config.resolution:

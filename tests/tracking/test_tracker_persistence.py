@@ -12,6 +12,7 @@ import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pytest
@@ -261,8 +262,8 @@ def test_a_failed_save_keeps_the_previous_map(
     backend = sim_backend()
     path = tmp_path / "scene.kvmap"
 
-    def disk_full(tensors: object, filename: str, metadata: object = None) -> None:
-        Path(filename).write_bytes(b"half a map")
+    def disk_full(handle: BinaryIO, tensors: object, metadata: object) -> int:
+        handle.write(b"half a map")
         raise OSError(errno.ENOSPC, "No space left on device")
 
     with make_tracker(backend, keyframing={"interval_frames": 10}) as tracker:
@@ -270,7 +271,7 @@ def test_a_failed_save_keeps_the_previous_map(
         first = tracker.save_map(path)
         drive(tracker, backend, start=11, stop=21)
         with monkeypatch.context() as patch:
-            patch.setattr(map_file, "save_file", disk_full)
+            patch.setattr(map_file, "write_safetensors", disk_full)
             with pytest.raises(MapIOError, match="No space left"):
                 tracker.save_map(path)
         assert os.listdir(tmp_path) == ["scene.kvmap"]  # no temporary file left behind
