@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.se3 import (
     check_rigid,
     quat_wxyz_from_rotation,
@@ -72,9 +73,12 @@ class Pose:
     T_world_cam: np.ndarray
 
     def __post_init__(self) -> None:
-        matrix = np.array(self.T_world_cam, dtype=np.float64, copy=True)
+        try:
+            matrix = np.array(self.T_world_cam, dtype=np.float64, copy=True)
+        except (TypeError, ValueError) as exc:  # not numbers
+            raise InputError(f"T_world_cam must be a 4x4 array of numbers: {exc}") from exc
         if matrix.shape != (4, 4):
-            raise ValueError(f"T_world_cam must be 4x4, got shape {matrix.shape}")
+            raise InputError(f"T_world_cam must be 4x4, got shape {matrix.shape}")
         matrix.setflags(write=False)
         object.__setattr__(self, "T_world_cam", matrix)
 
@@ -85,8 +89,13 @@ class Pose:
     @classmethod
     def from_rt(cls, rotation: np.ndarray, translation: np.ndarray) -> Pose:
         matrix = np.eye(4)
-        matrix[:3, :3] = rotation
-        matrix[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+        try:
+            matrix[:3, :3] = rotation
+            matrix[:3, 3] = np.asarray(translation, dtype=np.float64).reshape(3)
+        except (TypeError, ValueError) as exc:
+            raise InputError(
+                f"a pose needs a 3x3 rotation and 3 translation numbers: {exc}"
+            ) from exc
         return cls(matrix)
 
     @property

@@ -183,8 +183,8 @@ def read_manifest(folder: str | Path) -> OnnxManifest:
         )
     try:
         raw = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelError(f"cannot read {path}: {exc}") from exc
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: JSON, UTF-8 errors
+        raise ModelError(f"cannot read {path}: {str(exc)[:200]}") from exc
     if not isinstance(raw, dict) or raw.get("format") != FORMAT_NAME:
         raise ModelError(f"{path} is not a {FORMAT_NAME} manifest")
     if raw.get("format_version") != FORMAT_VERSION:

@@ -36,6 +36,7 @@ from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check
 from kvtracker_sdk.backends.torch_families import FrameOutputs, TorchFamily, family_adapter
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import (
+    BackendError,
     ConfigError,
     ImageShapeError,
     StateError,
@@ -61,6 +62,23 @@ def _parse_dtype(dtype: torch.dtype | str) -> torch.dtype:
     resolved = _DTYPES.get(dtype) if isinstance(dtype, str) else dtype
     if resolved not in (torch.float32, torch.bfloat16):
         raise ConfigError(f"TorchBackend dtype must be float32 or bfloat16, got {dtype!r}")
+    return resolved
+
+
+def _available_device(device: torch.device | str) -> torch.device:
+    """``device`` parsed, or a typed error: ConfigError for a name torch does not know,
+    BackendError for a device this machine lacks (torch itself would fail an assertion)."""
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        raise ConfigError(f"unknown device {device!r}: {exc}") from exc
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise BackendError(
+            f"device {device!r}: CUDA is not available (this torch build has no CUDA support or "
+            "no GPU is visible); use device 'cpu'"
+        )
+    if resolved.type == "mps" and not torch.backends.mps.is_available():
+        raise BackendError(f"device {device!r}: Apple MPS is not available; use device 'cpu'")
     return resolved
 
 
@@ -94,7 +112,13 @@ class TorchBackend:
         compute_dtype = _parse_dtype(dtype)
         family = family_adapter(model)  # ModelError for other networks, before any cast
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
-        self._model: Pi3 | DepthAnything3 | None = model.set_precision(compute_dtype).to(device).eval()
+        target = _available_device(device)
+        try:
+            self._model: Pi3 | DepthAnything3 | None = (
+                model.set_precision(compute_dtype).to(target).eval()
+            )
+        except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
+            raise BackendError(f"cannot move the model to {target}: {exc}") from exc
         self._family: TorchFamily | None = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
@@ -125,6 +149,7 @@ class TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
         checkpoint's tensor names."""
+        _available_device(device)  # before the minutes a large checkpoint may take to load
         loaded = load_model(weights, config=config)
         return cls(
             loaded.model,  # type: ignore[arg-type]

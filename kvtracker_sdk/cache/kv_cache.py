@@ -21,6 +21,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from numbers import Integral
 from typing import Any
 
 import torch
@@ -30,6 +31,10 @@ from kvtracker_sdk.errors import CacheError
 __all__ = ["CacheLayout", "KVCache"]
 
 
+def _is_count(value: object, minimum: int) -> bool:
+    return isinstance(value, Integral) and not isinstance(value, bool) and int(value) >= minimum
+
+
 @dataclass(frozen=True)
 class CacheLayout:
     """Shape of a model's cache: which blocks are global, heads and head_dim per layer."""
@@ -37,6 +42,15 @@ class CacheLayout:
     block_indices: tuple[int, ...]  # decoder/backbone block index of each cached global layer
     num_heads: int
     head_dim: int
+
+    def __post_init__(self) -> None:
+        # checked here so that a bad layout is a CacheError, not torch's RuntimeError later
+        sizes = (self.num_heads, self.head_dim)
+        if not all(_is_count(v, 1) for v in sizes):
+            raise CacheError(f"num_heads and head_dim must be integers >= 1, got {sizes}")
+        indices = tuple(self.block_indices)
+        if not all(_is_count(i, 0) for i in indices):
+            raise CacheError(f"block indices must be integers >= 0, got {indices}")
 
     @property
     def num_layers(self) -> int:

@@ -160,8 +160,8 @@ def _config_file(path: Path | None) -> TrackerConfig | None:
     text = read_regular_text(path, ConfigError, what="--config")  # a FIFO would block forever
     try:
         return TrackerConfig.from_dict(json.loads(text))
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"--config {path}: cannot read a JSON config ({exc})") from exc
+    except (json.JSONDecodeError, RecursionError) as exc:  # RecursionError: deeply nested JSON
+        raise ConfigError(f"--config {path}: cannot read a JSON config ({str(exc)[:200]})") from exc
 
 
 def _config_changes(**options: Any) -> dict[str, Any]:

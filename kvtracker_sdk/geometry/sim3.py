@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kvtracker_sdk.errors import InputError
+
 __all__ = ["Sim3", "umeyama_alignment"]
 
 
@@ -28,10 +30,16 @@ class Sim3:
     scale: float = 1.0
 
     def __post_init__(self) -> None:
-        R = np.array(self.rotation, dtype=np.float64).reshape(3, 3)
-        t = np.array(self.translation, dtype=np.float64).reshape(3)
-        if not np.isfinite(self.scale) or self.scale <= 0:
-            raise ValueError(f"Sim3 scale must be finite and > 0, got {self.scale}")
+        try:
+            R = np.array(self.rotation, dtype=np.float64).reshape(3, 3)
+            t = np.array(self.translation, dtype=np.float64).reshape(3)
+            scale_ok = bool(np.isfinite(self.scale)) and self.scale > 0
+        except (TypeError, ValueError) as exc:  # wrong sizes, not numbers
+            raise InputError(
+                f"Sim3 needs a 3x3 rotation, 3 translation numbers and a scale: {exc}"
+            ) from exc
+        if not scale_ok:
+            raise InputError(f"Sim3 scale must be finite and > 0, got {self.scale}")
         R.setflags(write=False)
         t.setflags(write=False)
         object.__setattr__(self, "rotation", R)
@@ -101,7 +109,9 @@ def umeyama_alignment(
     src = np.asarray(source, dtype=np.float64).reshape(-1, 3)
     dst = np.asarray(target, dtype=np.float64).reshape(-1, 3)
     if src.shape != dst.shape or len(src) == 0:
-        raise ValueError(f"need matching non-empty [N,3] point sets, got {src.shape} and {dst.shape}")
+        raise InputError(
+            f"need matching non-empty [N,3] point sets, got {src.shape} and {dst.shape}"
+        )
     mu_src, mu_dst = src.mean(axis=0), dst.mean(axis=0)
     src_c, dst_c = src - mu_src, dst - mu_dst
     var_src = float(np.mean(np.sum(src_c**2, axis=1)))

@@ -24,6 +24,8 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file
 from torch import nn
 
 from kvtracker_sdk.errors import (
@@ -37,6 +39,7 @@ __all__ = [
     "DEFAULT_FILENAME",
     "StateDictShapes",
     "check_state_dict",
+    "read_state_dict",
     "resolve_weights",
     "weights_fingerprint",
 ]
@@ -173,3 +176,12 @@ class StateDictShapes:
         pattern = re.compile(rf"^{re.escape(prefix)}(\d+)\.")
         indices = {int(m.group(1)) for key in self._state_dict if (m := pattern.match(key))}
         return max(indices) + 1 if indices else 0
+
+
+def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
+    """Every tensor of a ``.safetensors`` checkpoint; ``ModelError`` for a file that is not one
+    (a pickle, a zip, an empty or truncated file: safetensors' own error names the cause)."""
+    try:
+        return load_file(path)
+    except (SafetensorError, ValueError) as exc:
+        raise ModelError(f"{path} is not a readable .safetensors checkpoint: {exc}") from exc

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from torch import nn
 
 from kvtracker_sdk.errors import ModelError
@@ -78,8 +78,12 @@ def family_of_keys(keys: Iterable[str]) -> Family:
 
 def checkpoint_family(path: str | os.PathLike[str]) -> Family:
     """Family of a local ``.safetensors`` file, from its header (tensor data is not read)."""
-    with safe_open(os.fspath(path), framework="pt") as handle:
-        return family_of_keys(handle.keys())
+    try:
+        with safe_open(os.fspath(path), framework="pt") as handle:
+            keys = list(handle.keys())
+    except (SafetensorError, ValueError) as exc:  # a pickle, a zip, an empty or truncated file
+        raise ModelError(f"{path} is not a readable .safetensors checkpoint: {exc}") from exc
+    return family_of_keys(keys)
 
 
 def load_model(

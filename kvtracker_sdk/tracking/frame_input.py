@@ -135,8 +135,8 @@ def _check_timestamp(timestamp: Any) -> float | None:
         return None
     try:
         value = float(timestamp)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"timestamp must be a number or None, got {timestamp!r}") from exc
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: int beyond float
+        raise InputError(f"timestamp must be a number or None, got {str(timestamp)[:40]}") from exc
     if not math.isfinite(value):
         raise InputError(f"timestamp must be finite, got {value}")
     return value

@@ -30,13 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
 
 from kvtracker_sdk.errors import CheckpointMismatchError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import (
     DEFAULT_FILENAME,
     check_state_dict,
+    read_state_dict,
     resolve_weights,
     weights_fingerprint,
 )
@@ -124,7 +124,7 @@ def load_da3(
     if name.startswith("da3-") and name[4:] in HUB_REPOS and not Path(name).exists():
         weights = HUB_REPOS[name[4:]]
     path = resolve_weights(weights, filename=filename)
-    state_dict = canonical_state_dict(load_file(path))
+    state_dict = canonical_state_dict(read_state_dict(path))
     config = config or DA3Config.from_state_dict(state_dict)
     with torch.device("meta"):
         model = DepthAnything3(config)

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
 
 from kvtracker_sdk.models.checkpoint_utils import (
     DEFAULT_FILENAME,
     check_state_dict,
+    read_state_dict,
     resolve_weights,
     weights_fingerprint,
 )
@@ -54,7 +54,7 @@ def load_pi3(
 ) -> LoadedPi3:
     """Load a Pi3 checkpoint strictly; ``config`` None infers it from the tensor shapes."""
     path = resolve_weights(weights, filename=filename)
-    state_dict = load_file(path)
+    state_dict = read_state_dict(path)
     config = config or Pi3Config.from_state_dict(state_dict)
     with torch.device("meta"):
         model = Pi3(config)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Mapping
+from typing import Any
 
 import torch
 from pydantic import (
@@ -28,14 +29,27 @@ from pydantic import (
     model_validator,
 )
 
-from kvtracker_sdk.errors import CheckpointMismatchError
+from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
 from kvtracker_sdk.models.checkpoint_utils import StateDictShapes
 
 __all__ = ["Pi3Config", "Pi3DecoderConfig", "Pi3EncoderConfig", "Pi3HeadsConfig"]
 
 
 class _Section(BaseModel):
+    """Frozen, strict-keys base; pydantic's ValidationError is re-raised as ConfigError."""
+
     model_config = ConfigDict(frozen=True, extra="forbid")
+
+    def __init__(self, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise ConfigError(f"invalid {type(self).__name__}: {exc}") from exc
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise ConfigError(
+            f"{type(self).__name__} is frozen; make a copy with model_copy(update=...)"
+        )
 
 
 def _check_heads(name: str, dim: int, heads: int, *, rope: bool) -> None:

@@ -6,7 +6,6 @@ import json
 
 import pytest
 import torch
-from pydantic import ValidationError
 from safetensors.torch import load_file
 
 from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
@@ -109,15 +108,15 @@ def test_infer_from_incomplete_checkpoint_names_the_key() -> None:
 
 
 def test_invalid_configs_are_rejected() -> None:
-    with pytest.raises(ValidationError, match="divisible by 4"):
+    with pytest.raises(ConfigError, match="divisible by 4"):
         DA3BackboneConfig(embed_dim=36, num_heads=2)  # head_dim 18
-    with pytest.raises(ValidationError, match="alt_start"):
+    with pytest.raises(ConfigError, match="alt_start"):
         DA3BackboneConfig(depth=4, alt_start=4)
-    with pytest.raises(ValidationError, match="no global block"):
+    with pytest.raises(ConfigError, match="no global block"):
         DA3BackboneConfig(depth=5, alt_start=4, out_layers=(0, 1, 2, 3))
-    with pytest.raises(ValidationError, match="out_layers"):
+    with pytest.raises(ConfigError, match="out_layers"):
         DA3BackboneConfig(out_layers=(5, 7, 9, 12))
-    with pytest.raises(ValidationError, match="divisible by 4"):
+    with pytest.raises(ConfigError, match="divisible by 4"):
         DA3HeadConfig(features=12)  # features / 2 = 6
-    with pytest.raises(ValidationError):
+    with pytest.raises(ConfigError):
         DA3HeadConfig(extra=1)  # type: ignore[call-arg]

@@ -6,10 +6,9 @@ import json
 
 import pytest
 import torch
-from pydantic import ValidationError
 from safetensors.torch import load_file
 
-from kvtracker_sdk.errors import CheckpointMismatchError
+from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
 from kvtracker_sdk.models.pi3 import (
     Pi3,
     Pi3Config,
@@ -75,24 +74,24 @@ def test_infer_from_incomplete_checkpoint_names_the_key() -> None:
 
 
 def test_invalid_configs_are_rejected() -> None:
-    with pytest.raises(ValidationError, match="divisible by 4"):
+    with pytest.raises(ConfigError, match="divisible by 4"):
         Pi3DecoderConfig(embed_dim=36, num_heads=2)  # head_dim 18
-    with pytest.raises(ValidationError, match="even"):
+    with pytest.raises(ConfigError, match="even"):
         Pi3DecoderConfig(embed_dim=32, num_heads=2, depth=3)
-    with pytest.raises(ValidationError, match="not divisible"):
+    with pytest.raises(ConfigError, match="not divisible"):
         Pi3EncoderConfig(embed_dim=30, num_heads=4)
-    with pytest.raises(ValidationError, match="must equal"):
+    with pytest.raises(ConfigError, match="must equal"):
         Pi3Config(
             encoder=Pi3EncoderConfig(embed_dim=64, num_heads=2),
             decoder=Pi3DecoderConfig(embed_dim=32, num_heads=2),
         )
-    with pytest.raises(ValidationError):
+    with pytest.raises(ConfigError):
         Pi3HeadsConfig(extra_field=1)  # type: ignore[call-arg]
 
 
 def test_frozen_and_hash() -> None:
     config = Pi3Config.large()
-    with pytest.raises(ValidationError):
+    with pytest.raises(ConfigError):
         config.patch_size = 16  # type: ignore[misc]
     small = config.model_copy(update={"heads": Pi3HeadsConfig(embed_dim=32, num_heads=2)})
     assert config.config_hash == Pi3Config.large().config_hash
