@@ -32,6 +32,7 @@ import torch
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
 from kvtracker_sdk.backends.onnx_families import HeadOutputs
+from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, providers_for
 from kvtracker_sdk.cache.kv_cache import KVCache
@@ -44,7 +45,8 @@ __all__ = ["OnnxBackend"]
 class OnnxBackend:
     """Pi3 or Depth Anything 3 on ONNX Runtime; implements ``kvtracker_sdk.backends.base.Backend``.
 
-    ``folder``: an export (``kvtracker export-onnx``). ``device``: "cpu" (default), "cuda[:N]",
+    ``folder``: an export (``kvtracker export-onnx``); its files must match the sha256 digests
+    of its manifest (``ModelError`` otherwise). ``device``: "cpu" (default), "cuda[:N]",
     "coreml" or "directml", where the installed onnxruntime provides it; ``providers`` (names or
     (name, options) pairs) overrides it. ``threads``: intra-op CPU threads (None: one per
     physical core).
@@ -60,6 +62,7 @@ class OnnxBackend:
     ) -> None:
         self.folder = Path(folder)
         self.manifest: OnnxManifest = read_manifest(self.folder)
+        verify_files(self.folder, self.manifest.sha256)  # before ONNX Runtime reads a byte
         self._runner: OnnxRunner | None = OnnxRunner(
             self.folder, self.manifest, providers=providers_for(device, providers), threads=threads
         )

@@ -44,7 +44,7 @@ any resolution whose sides are multiples of ``patch_size``.
 from __future__ import annotations
 
 import json
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -70,7 +70,7 @@ __all__ = [
 ]
 
 FORMAT_NAME = "kvtracker-onnx"
-FORMAT_VERSION = 1  # bump on any change a version-1 reader would misread
+FORMAT_VERSION = 2  # bump on any change an older reader would misread (2: file sha256)
 MANIFEST_NAME = "manifest.json"
 WEIGHTS_NAME = "weights.bin"
 # graphs of an export, per family (``manifest.family``), in the order they run
@@ -137,6 +137,7 @@ class OnnxManifest(_Frozen):
     check: dict[str, float] = Field(default_factory=dict)  # output -> max |ORT - PyTorch|
     weights_file: str = WEIGHTS_NAME
     weights_bytes: int
+    sha256: dict[str, str]  # file (every graph and the weights) -> hex sha256, see onnx_integrity
     exporter: dict[str, str] = Field(default_factory=dict)  # torch / onnx / onnxscript versions
     graphs: dict[str, GraphSpec]
 
@@ -166,11 +167,24 @@ class OnnxManifest(_Frozen):
         return path
 
 
+def _inside(folder: Path, name: str) -> bool:
+    """Whether ``name`` is a relative path that stays inside ``folder`` (no absolute path, no
+    ``..``, no symbolic link leading out)."""
+    relative = PurePosixPath(name)
+    if relative.is_absolute() or ".." in relative.parts or "\\" in name or ":" in name:
+        return False
+    try:
+        return (folder / relative).resolve().is_relative_to(folder.resolve())
+    except (OSError, ValueError, RuntimeError):  # unresolvable, NUL byte, symlink loop
+        return False
+
+
 def read_manifest(folder: str | Path) -> OnnxManifest:
     """Read and validate ``folder/manifest.json``; ``ModelError`` says what is wrong.
 
     Checks the format name and version, the family, that every graph of the family and the
-    weights file exist, and that
+    weights file exist inside the folder and have a recorded sha256 (verified by the backend,
+    ``onnx_integrity``), and that
     the recorded fingerprint is the one the recorded identity hashes to (a hand-edited or
     mismatched manifest would otherwise let caches cross models).
     """
@@ -205,9 +219,14 @@ def read_manifest(folder: str | Path) -> OnnxManifest:
     if missing:
         raise ModelError(f"{path} lists no graph for {missing}")
     files = [manifest.weights_file, *(spec.file for spec in manifest.graphs.values())]
+    outside = [name for name in files if not _inside(folder, name)]
+    if outside:
+        raise ModelError(f"{path} names files outside its folder: {outside}")
     absent = [name for name in files if not (folder / name).is_file()]
     if absent:
         raise ModelError(f"{folder} is incomplete: missing {absent}")
+    if set(manifest.sha256) != set(files):
+        raise ModelError(f"{path}: its sha256 entries must cover exactly the files {files}")
     identity = manifest.backend_info(device="cpu", accelerations=()).fingerprint
     if identity != manifest.fingerprint:
         raise ModelError(

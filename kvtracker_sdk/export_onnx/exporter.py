@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from kvtracker_sdk._version import __version__
+from kvtracker_sdk.backends.onnx_integrity import file_digests
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME, GraphSpec, OnnxManifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, import_onnxruntime
 from kvtracker_sdk.backends.torch_families import family_adapter
@@ -189,6 +190,8 @@ def _export_into(
                 file=f"{graph.name}.onnx", inputs=graph.inputs, outputs=graph.outputs
             )
         weights_bytes = weights.size
+    files = [WEIGHTS_NAME, *(spec.file for spec in specs.values())]
+    digests = file_digests(folder, files)  # verified by every backend that loads the folder
     provisional = OnnxManifest(
         sdk_version=__version__,
         created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -204,6 +207,7 @@ def _export_into(
         opset=opset,
         check_resolution=check_size,
         weights_bytes=weights_bytes,
+        sha256=digests,
         exporter={name: version(name) for name in ("torch", "onnx", "onnxscript", "onnx-ir")},
         graphs=specs,
     )

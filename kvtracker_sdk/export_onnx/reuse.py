@@ -2,7 +2,8 @@
 
 ``exported_folder(weights)`` loads a checkpoint of either family (model name, ``.safetensors``
 file, folder or hub id), and returns ``<cache_dir>/<family>-<weights fingerprint>``, exporting into it first unless an export
-of the same weights is already there. The default ``cache_dir`` is
+of the same weights is already there and its files match their recorded sha256 (a damaged or
+tampered folder is exported again). The default ``cache_dir`` is
 ``$KVTRACKER_CACHE_DIR/onnx``, else ``$XDG_CACHE_HOME/kvtracker_sdk/onnx``, else
 ``~/.cache/kvtracker_sdk/onnx``. The first call for the full model takes minutes (the export is
 checked against PyTorch); later calls only hash the weights.
@@ -14,6 +15,7 @@ import os
 from pathlib import Path
 from typing import cast
 
+from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx.exporter import export_model
@@ -42,10 +44,12 @@ def exported_folder(
     loaded = load_model(weights)
     folder = Path(cache_dir or default_cache_dir()) / f"{loaded.family}-{loaded.fingerprint}"
     try:
-        if read_manifest(folder).weights_fingerprint == loaded.fingerprint:
+        manifest = read_manifest(folder)
+        if manifest.weights_fingerprint == loaded.fingerprint:
+            verify_files(folder, manifest.sha256)
             return folder
-    except ModelError:  # absent, incomplete or from another SDK version: export again
-        pass
+    except ModelError as exc:  # absent, incomplete, damaged or from another SDK: export again
+        _log.info("cached onnx export unusable", folder=str(folder), reason=str(exc)[:300])
     _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
     export_model(
         cast(Pi3 | DepthAnything3, loaded.model),  # what load_model returns
