@@ -76,7 +76,8 @@ def test_graph_paths_outside_the_folder_are_refused(
         else os.path.relpath(golden_onnx_dir / "encoder.onnx", copied)
     )
     manifest["graphs"]["encoder"]["file"] = outside
-    manifest["sha256"][outside] = manifest["sha256"].pop("encoder.onnx")  # digests agree
+    digests = manifest.get("sha256", {})
+    digests[outside] = digests.pop("encoder.onnx", None)  # the digest agrees with the file
     (copied / MANIFEST_NAME).write_text(json.dumps(manifest))
     with pytest.raises(ModelError, match="outside its folder"):
         OnnxBackend(copied)
@@ -84,7 +85,7 @@ def test_graph_paths_outside_the_folder_are_refused(
 
 def test_a_manifest_without_digests_is_refused(copied: Path) -> None:
     manifest = json.loads((copied / MANIFEST_NAME).read_text())
-    del manifest["sha256"]
+    manifest.pop("sha256", None)
     (copied / MANIFEST_NAME).write_text(json.dumps({**manifest, "format_version": 1}))
     with pytest.raises(ModelError, match="format version 1, this SDK reads version 2"):
         OnnxBackend(copied)
@@ -93,7 +94,6 @@ def test_a_manifest_without_digests_is_refused(copied: Path) -> None:
 def test_from_pretrained_exports_again_over_a_poisoned_cached_folder(
     golden_onnx_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from kvtracker_sdk.backends import onnx_integrity
     from kvtracker_sdk.export_onnx import reuse
 
     weights = shared_path("golden", "pi3", "weights.safetensors")
@@ -110,6 +110,8 @@ def test_from_pretrained_exports_again_over_a_poisoned_cached_folder(
     monkeypatch.setattr(reuse, "export_model", export)
     backend = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
     assert exports == [slot] and backend.folder == slot
+    from kvtracker_sdk.backends import onnx_integrity
+
     onnx_integrity.verify_files(slot, read_manifest(slot).sha256)  # the clean export now
 
 
