@@ -47,7 +47,9 @@ def real() -> list[str]:
 
 def test_every_example_is_a_script_with_a_main() -> None:
     names = sorted(p.stem for p in EXAMPLES.glob("*.py"))
-    assert names == ["camera_loop", "object_masks", "object_scan_and_relocalise", "swap_backends"]
+    assert names == [
+        "camera_loop", "object_masks", "object_scan_and_relocalise", "ray_streams", "swap_backends"
+    ]
     for name in names:
         text = (EXAMPLES / f"{name}.py").read_text()
         assert 'if __name__ == "__main__":\n    main()' in text and text.startswith('"""')
