@@ -81,11 +81,15 @@ class SequenceSpec(_Strict):
         return self
 
 
+def _default_configs() -> dict[str, dict[str, Any]]:
+    return {"default": {}}
+
+
 class EvalManifest(_Strict):
     """Sequences x configurations (and the model, if any sequence is real)."""
 
     model: ModelSpec | None = None
-    configs: dict[str, dict[str, Any]] = Field(default_factory=lambda: {"default": {}})
+    configs: dict[str, dict[str, Any]] = Field(default_factory=_default_configs)
     sequences: tuple[SequenceSpec, ...] = Field(min_length=1)
     # torch threads per task: results are bit-identical whatever engine runs them only when
     # every run uses the same thread count (reductions split differently otherwise)

@@ -111,7 +111,7 @@ class EvalManyResult:
             return None
         figure, axis = plt.subplots(figsize=(max(4.0, 0.6 * len(scored)), 3.0))
         labels = [f"{r.sequence}\n{r.config}" for r in scored]
-        axis.bar(range(len(scored)), [r.ate_rmse_m for r in scored], color="#4477aa")
+        axis.bar(range(len(scored)), [float(r.ate_rmse_m or 0.0) for r in scored], color="#4477aa")
         axis.set_xticks(range(len(scored)), labels, fontsize=7)
         axis.set_ylabel("ATE RMSE (Sim(3)-aligned, GT units)")
         figure.tight_layout()

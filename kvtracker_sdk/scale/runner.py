@@ -169,6 +169,6 @@ def run_many(
             progress(len(done), len(tasks), result)
     order = {(spec.name, name): i for i, (spec, name) in enumerate(manifest.tasks())}
     done.sort(key=lambda r: order[(r.sequence, r.config)])
-    result = EvalManyResult(tuple(done), engine=engine.value, workers=workers)
-    result.write(out)
-    return result
+    table = EvalManyResult(tuple(done), engine=engine.value, workers=workers)
+    table.write(out)
+    return table
