@@ -52,7 +52,7 @@ class SimulatedSpec(_Strict):
     frames: int | None = Field(default=None, ge=1)  # first N poses of the ground truth
     orbit_frames: int | None = Field(default=None, ge=2)
     orbit_turns: float = Field(default=1.0, gt=0)
-    size: tuple[int, int] = (182, 252)  # rendered frame HxW
+    size: tuple[int, int] = (196, 252)  # rendered frame HxW (Pi3's model size at d=224: no resize)
     noise_cm: float = Field(default=1.0, ge=0)
     noise_deg: float = Field(default=0.3, ge=0)
     loss: tuple[int, int] | None = None  # frames [start, stop) with the camera covered

@@ -45,6 +45,9 @@ def ensure_ray(*, num_cpus: int | None = None) -> Any:
     ray = import_ray()
     if not ray.is_initialized():
         _loopback_node_address()
+        # all of the machine's cores unless told otherwise: a cluster sized for the first
+        # caller's worker count would starve a later, larger pool
+        num_cpus = max(num_cpus or 0, os.cpu_count() or 1)
         _log.info("starting a local Ray cluster bound to 127.0.0.1", num_cpus=num_cpus)
         ray.init(
             _node_ip_address="127.0.0.1",

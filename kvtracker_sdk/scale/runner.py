@@ -124,7 +124,10 @@ def _ray(
     from ray.util import ActorPool
 
     model_json = manifest.model.model_dump_json() if manifest.model else None
-    remote_worker = actor_class(TaskWorker)
+    # one CPU per actor, or a share of a smaller cluster: an actor asking for more CPUs than the
+    # cluster has would never start, and the tasks queued on it would wait forever
+    share = min(1.0, float(ray.cluster_resources().get("CPU", 1.0)) / workers)
+    remote_worker = actor_class(TaskWorker, num_cpus=share)
     actors = [
         remote_worker.remote(model_json, str(out_dir), manifest.threads_per_task)
         for _ in range(workers)
