@@ -29,6 +29,7 @@ from kvtracker_sdk.errors import (
     MapFormatError,
     MapIOError,
     MapModelMismatchError,
+    MappingFailedError,
     MapPreprocessingError,
     MapVersionError,
     MaskError,
@@ -39,11 +40,21 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
     SourceError,
     StateError,
+    TrackingFailedError,
     TrajectoryError,
     WeightsNotFoundError,
 )
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.types import FrameResult, HeadSet, MapStatus, Pose, StateReason, TrackingState
+from kvtracker_sdk.types import (
+    FrameResult,
+    HeadSet,
+    MapStatus,
+    Pose,
+    StateReason,
+    TrackedPose,
+    TrackerSnapshot,
+    TrackingState,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
@@ -108,6 +119,7 @@ __all__ = [
     "MapResult",
     "MapStatus",
     "MapVersionError",
+    "MappingFailedError",
     "MaskError",
     "MissingDependencyError",
     "ModelError",
@@ -123,8 +135,11 @@ __all__ = [
     "StateReason",
     "TorchBackend",
     "TrackResult",
+    "TrackedPose",
     "Tracker",
     "TrackerConfig",
+    "TrackerSnapshot",
+    "TrackingFailedError",
     "TrackingState",
     "TrajectoryError",
     "WeightsNotFoundError",

@@ -28,6 +28,8 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     ├── OutputError                      an output file or folder cannot be written (also OSError)
     ├── BackendError
     │   ├── BackendMismatchError         fingerprints or cache layouts disagree
+    │   ├── MappingFailedError           a mapping pass failed (the cause is ``__cause__``)
+    │   ├── TrackingFailedError          a tracking pass failed or gave non-finite output
     │   └── MissingDependencyError       an optional extra is not installed (names it)
     └── MapError                         map files (``.kvmap``)
         ├── MapFormatError               not a map file / malformed header
@@ -60,6 +62,7 @@ __all__ = [
     "MapModelMismatchError",
     "MapPreprocessingError",
     "MapVersionError",
+    "MappingFailedError",
     "MaskError",
     "MissingDependencyError",
     "ModelError",
@@ -68,6 +71,7 @@ __all__ = [
     "ResolutionChangedError",
     "SourceError",
     "StateError",
+    "TrackingFailedError",
     "TrajectoryError",
     "WeightsNotFoundError",
 ]
@@ -172,6 +176,18 @@ class BackendError(KVTrackerError):
 
 class BackendMismatchError(BackendError):
     """Two backends (or a backend and a cache/map) have different fingerprints or layouts."""
+
+
+class MappingFailedError(BackendError):
+    """A mapping pass (bootstrap or keyframe rebuild) failed: the backend raised (the original
+    exception is ``__cause__``) or returned non-finite output. The tracker keeps its current map,
+    reports the failure (event, ``MapStatus``) and retries later; it never raises this from
+    ``push_frame``."""
+
+
+class TrackingFailedError(BackendError):
+    """Tracking one frame failed: the backend raised (``__cause__``) or returned a non-finite pose
+    or confidence. ``push_frame`` returns it in ``FrameResult.error`` instead of raising."""
 
 
 class MissingDependencyError(BackendError, ImportError):

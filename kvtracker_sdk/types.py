@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.errors import InputError
+from kvtracker_sdk.errors import InputError, MappingFailedError, TrackingFailedError
 from kvtracker_sdk.geometry.se3 import (
     check_rigid,
     quat_wxyz_from_rotation,
@@ -28,6 +28,8 @@ __all__ = [
     "MapStatus",
     "Pose",
     "StateReason",
+    "TrackedPose",
+    "TrackerSnapshot",
     "TrackingState",
 ]
 
@@ -141,6 +143,14 @@ class MapStatus:
     keyframe_waiting: bool = False
     # waiting candidates replaced by newer ones because a rebuild outlasted a keyframe interval
     deferred_replaced: int = 0
+    # mapping passes that failed (backend exception or non-finite output) since the tracker began
+    failed_passes: int = 0
+    # the latest failure (its ``__cause__`` is the backend's exception); None once a pass succeeds
+    last_error: MappingFailedError | None = None
+    # no mapping pass starts before this frame index (backoff after a failure); None: no backoff
+    retry_at_frame: int | None = None
+    # frames whose tracking pass failed (see ``FrameResult.error``) since the tracker began
+    failed_tracks: int = 0
 
 
 def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:
@@ -153,7 +163,9 @@ class FrameResult:
 
     ``pose`` is the frame's ``T_world_cam`` in the tracker's world frame; it is None when there is
     no map yet, and flagged by ``pose_valid=False`` while relocalising. ``timings_ms`` holds the
-    per-stage wall times (preprocess, track, map, total, ...).
+    per-stage wall times (preprocess, track, map, total, ...). ``error`` is set when the backend
+    failed to track this frame (then ``pose`` is None and ``pose_valid`` False); the tracker
+    carries on with the next frame.
     """
 
     frame_index: int
@@ -167,6 +179,7 @@ class FrameResult:
     map_generation: int = 0
     timings_ms: Mapping[str, float] = field(default_factory=dict)
     extras: Mapping[str, Any] = field(default_factory=dict)
+    error: TrackingFailedError | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "timings_ms", _frozen_mapping(self.timings_ms))
@@ -175,3 +188,30 @@ class FrameResult:
     @property
     def is_keyframe(self) -> bool:
         return self.keyframe_id is not None
+
+
+@dataclass(frozen=True)
+class TrackedPose:
+    """A valid pose together with the frame it was tracked from (``Tracker.get_tracked_pose``)."""
+
+    pose: Pose
+    frame_index: int
+    timestamp: float | None
+
+
+@dataclass(frozen=True)
+class TrackerSnapshot:
+    """The tracker as of its last finished call, read in one piece (``Tracker.snapshot()``).
+
+    Replaced as a whole (one reference assignment) whenever the tracker changes, so ``state`` and
+    ``reason`` always form a pair the state table allows. ``frame_index``/``timestamp`` belong to
+    the last processed frame (None before the first); ``pose`` is the last *valid* pose with its own
+    frame index and stamp (None before the first and after a map was dropped).
+    """
+
+    state: TrackingState
+    reason: StateReason
+    frame_index: int | None = None
+    timestamp: float | None = None
+    pose: TrackedPose | None = None
+    map_generation: int = 0

@@ -27,19 +27,23 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+from kvtracker_sdk.errors import BackendError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking.gauge import Correction
 from kvtracker_sdk.types import StateReason, TrackingState
 
 __all__ = [
+    "BackendFailedEvent",
     "EventBus",
     "EventKind",
+    "EventSource",
     "KeyframeEvent",
     "KeyframeRejectedEvent",
     "MapUpdatedEvent",
     "StateChangeEvent",
     "Subscription",
+    "WorldFrameChangedEvent",
 ]
 
 _log = get_logger(__name__)
@@ -50,6 +54,8 @@ class EventKind(str, enum.Enum):
     KEYFRAME_REJECTED = "on_keyframe_rejected"
     STATE_CHANGE = "on_state_change"
     MAP_UPDATED = "on_map_updated"
+    WORLD_FRAME_CHANGED = "on_world_frame_changed"
+    BACKEND_FAILED = "on_backend_failed"
 
 
 def _frozen_array(array: np.ndarray) -> np.ndarray:
@@ -150,7 +156,46 @@ class MapUpdatedEvent:
         )
 
 
-Event = StateChangeEvent | KeyframeEvent | KeyframeRejectedEvent | MapUpdatedEvent
+@dataclass(frozen=True)
+class WorldFrameChangedEvent:
+    """A map in a NEW world frame was installed: poses before and after it are not comparable.
+
+    Sent after a map was dropped and another one started (``reason``: TIMEOUT for the ``reset``
+    timeout policy, NEW_MAP for ``new_map``, RESET for ``reset()``) or a saved map replaced one
+    (MAP_LOADED). Rebuilds of one map keep its world frame and never send this.
+    """
+
+    reason: StateReason
+    previous_generation: int  # the last map of the old world frame (0: none)
+    generation: int  # the first map of the new world frame
+    frame_index: int | None  # the frame that built it (None for a loaded map)
+
+
+@dataclass(frozen=True)
+class BackendFailedEvent:
+    """A backend call failed; the tracker carried on (sent once per failed call).
+
+    ``operation`` is "map" (a rebuild or bootstrap: the current map is kept and no mapping pass
+    starts before ``retry_at_frame``) or "track" (this frame got no pose). ``error`` is the typed
+    error (``MappingFailedError``/``TrackingFailedError``) whose ``__cause__`` is the original.
+    """
+
+    operation: str
+    frame_index: int  # the frame being mapped or tracked
+    message: str
+    error: BackendError
+    consecutive: int  # failures of this operation in a row, this one included
+    retry_at_frame: int | None = None
+
+
+Event = (
+    StateChangeEvent
+    | KeyframeEvent
+    | KeyframeRejectedEvent
+    | MapUpdatedEvent
+    | WorldFrameChangedEvent
+    | BackendFailedEvent
+)
 Callback = Callable[[Any], None]
 
 
@@ -242,3 +287,38 @@ class EventBus:
                         subscription.callback, "__qualname__", repr(subscription.callback)
                     ),
                 )
+
+
+class EventSource:
+    """The ``on_*`` registration methods of an object whose ``_events`` is an ``EventBus`` (the
+    ``Tracker``). Each returns a ``Subscription``; callbacks receive the event payload."""
+
+    _events: EventBus
+
+    def on_keyframe(self, callback: Callback) -> Subscription:
+        """``KeyframeEvent``: a frame became a keyframe."""
+        return self._events.register(EventKind.KEYFRAME, callback)
+
+    def on_keyframe_rejected(self, callback: Callback) -> Subscription:
+        """``KeyframeRejectedEvent``: a candidate (or a new map's first frame) was not confident."""
+        return self._events.register(EventKind.KEYFRAME_REJECTED, callback)
+
+    def on_state_change(self, callback: Callback) -> Subscription:
+        """``StateChangeEvent``: one row of the state table was taken."""
+        return self._events.register(EventKind.STATE_CHANGE, callback)
+
+    def on_map_updated(self, callback: Callback) -> Subscription:
+        """``MapUpdatedEvent``: a new map was installed."""
+        return self._events.register(EventKind.MAP_UPDATED, callback)
+
+    def on_world_frame_changed(self, callback: Callback) -> Subscription:
+        """``WorldFrameChangedEvent``: poses from now on are in a new world frame."""
+        return self._events.register(EventKind.WORLD_FRAME_CHANGED, callback)
+
+    def on_backend_failed(self, callback: Callback) -> Subscription:
+        """``BackendFailedEvent``: a mapping or tracking pass failed; tracking carried on."""
+        return self._events.register(EventKind.BACKEND_FAILED, callback)
+
+    def unregister(self, handle: Subscription | Callback) -> bool:
+        """Remove a subscription (or every registration of a callback)."""
+        return self._events.unregister(handle)

@@ -117,7 +117,9 @@ class KeyframeBudget:
         if excess >= len(candidates):
             return tuple(kf.keyframe_id for kf in candidates)
         if self.config.eviction is EvictionPolicy.OLDEST:
-            order = sorted(candidates, key=lambda kf: kf.frame_index)
+            # by keyframe id, which never goes back: frame indices restart in every session (a
+            # loaded map's keyframes have indices of an earlier session), ids do not
+            order = sorted(candidates, key=lambda kf: kf.keyframe_id)
             return tuple(kf.keyframe_id for kf in order[:excess])
         return _most_redundant(list(keyframes), excess)
 

@@ -13,9 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
+from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.config import RejectionConfig
 from kvtracker_sdk.errors import BackendError, MapPreprocessingError
 from kvtracker_sdk.geometry.sim3 import Sim3
@@ -57,6 +59,8 @@ class RebuildRequest:
     candidate: KeyframeCandidate
     cause: str  # "bootstrap", "keyframe", "new_map"
     generation: int  # generation the new map gets if accepted
+    # a bootstrap after a lost map: keyframe 0's mean confidence must reach this absolute floor
+    min_confidence: float | None = None
 
 
 @dataclass(frozen=True)
@@ -67,7 +71,7 @@ class RebuildOutcome:
     new_map: KeyframeMap
     accepted: bool
     candidate_confidence: float  # the candidate's (masked) mean confidence in this pass
-    reference_confidence: float  # keyframe 0's in this pass
+    reference_confidence: float  # keyframe 0's in this pass (a floored bootstrap: the floor)
     correction: Correction  # how the kept keyframes moved in the world frame
     map_ms: float
 
@@ -96,6 +100,16 @@ def _gauge(
     return estimate_gauge(world_poses, raw_poses[:shared], scale)
 
 
+def _check_finite(poses: np.ndarray, confidence: np.ndarray, cache: KVCache) -> None:
+    """Non-finite network output (NaN/inf weights or K/V) must never become a map."""
+    if not (np.isfinite(poses).all() and np.isfinite(confidence).all()):
+        raise BackendError("the mapping pass returned non-finite poses or confidences")
+    for layer in range(cache.layout.num_layers):
+        keys, values = cache.keys(layer), cache.values(layer)
+        if not (torch.isfinite(keys).all() and torch.isfinite(values).all()):
+            raise BackendError(f"the mapping pass returned non-finite K/V (cache layer {layer})")
+
+
 def build_map(
     backend: Backend,
     request: RebuildRequest,
@@ -120,6 +134,7 @@ def build_map(
             f"mapping pass over {len(sources)} frames returned {result.num_frames} poses and a "
             f"cache of {result.cache.num_keyframes} keyframes"
         )
+    _check_finite(result.poses, result.confidence, result.cache)
     gauge = _gauge(request, result.poses, result.local_points, align_gauge)
     world_poses = gauge.apply_to_pose(result.poses)
     keyframes = tuple(
@@ -144,8 +159,13 @@ def build_map(
     )
     reference = keyframes[0].mean_confidence
     candidate = keyframes[-1].mean_confidence
-    judged = request.previous is not None and rejection.enabled
-    accepted = not judged or candidate >= rejection.ratio * reference
+    if request.previous is None and request.min_confidence is not None:
+        # a new map must start from a frame confident in absolute terms, not relative to itself
+        reference = request.min_confidence
+        accepted = candidate >= reference
+    else:
+        judged = request.previous is not None and rejection.enabled
+        accepted = not judged or candidate >= rejection.ratio * reference
     return RebuildOutcome(
         request=request,
         new_map=new_map,

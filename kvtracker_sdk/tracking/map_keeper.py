@@ -17,6 +17,15 @@ keyframes depends on the frames, not on how fast the mapping worker is — unles
 longer than a whole keyframe interval (an overloaded machine): then a newer candidate replaces the
 waiting one, and ``MapStatus.deferred_replaced`` counts it. Rejections are timed from the
 candidate's own frame index for the same reason.
+
+A pass that **fails** (the backend raised, or returned non-finite output) is not installed: the
+keeper notes it (``MapStatus.failed_passes``, ``last_error``), hands it back to its keyframe id
+(no keyframe was made and no event named it), and lets no pass start before ``retry_at_frame``,
+which backs off exponentially while failures repeat (``failures.backoff_frames``).
+
+After a map is lost for good (a relocalisation-timeout policy), the next map must start from a
+frame that is confident in absolute terms: ``drop(floor=...)`` makes every new bootstrap's keyframe
+0 reach that mean confidence (measured against the lost map's reference, not against itself).
 """
 
 from __future__ import annotations
@@ -30,9 +39,10 @@ import torch
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
-from kvtracker_sdk.errors import MapPreprocessingError, StateError
+from kvtracker_sdk.errors import MappingFailedError, MapPreprocessingError, StateError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import keyframes as policy
+from kvtracker_sdk.tracking.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.frame_input import PreparedFrame
 from kvtracker_sdk.tracking.map_builder import (
     KeyframeCandidate,
@@ -71,6 +81,11 @@ class MapKeeper:
         self.generation = 0  # of the latest installed map; 0 before the first
         self._next_keyframe_id = 0
         self._deferred_replaced = 0  # waiting candidates replaced by newer ones (overload)
+        self._failed_passes = 0
+        self._last_error: MappingFailedError | None = None
+        self._floor: float | None = None  # absolute confidence a new map's keyframe 0 must reach
+        # rebuilds started / taken (or discarded), in order: lets a waiter know when "its" are done
+        self._started = self._taken = 0
         self._clear_counters()
 
     def _clear_counters(self) -> None:
@@ -81,6 +96,9 @@ class MapKeeper:
         # candidates proposed but not in the installed map: the pending one, then the waiting one
         self._in_flight: tuple[_Proposal, ...] = ()
         self._waiting: _Proposal | None = None
+        self._request: RebuildRequest | None = None  # of the pending rebuild
+        self._consecutive_failures = 0
+        self._count_from_next = False  # a loaded map: the interval counts from its first frame
 
     @property
     def rebuilding(self) -> bool:
@@ -89,26 +107,34 @@ class MapKeeper:
 
     def status(self) -> MapStatus:
         kf_map, rebuilding = self.map, self._mapper.pending
-        waiting, replaced = self._waiting is not None, self._deferred_replaced
-        if kf_map is None:
-            return MapStatus(0, 0, 0, rebuilding, keyframe_waiting=waiting,
-                             deferred_replaced=replaced)
+        failing = self._consecutive_failures > 0
+        extra = {
+            "keyframe_waiting": self._waiting is not None,
+            "deferred_replaced": self._deferred_replaced,
+            "failed_passes": self._failed_passes,
+            "last_error": self._last_error,
+            "retry_at_frame": self._retry_frame if failing else None,
+        }
+        if kf_map is None:  # the generation never goes back, also without a map (after reset)
+            return MapStatus(0, 0, self.generation, rebuilding, **extra)  # type: ignore[arg-type]
         return MapStatus(
             kf_map.num_keyframes,
             kf_map.cache.nbytes,
             kf_map.generation,
             rebuilding,
             kf_map.keyframe_ids,
-            keyframe_waiting=waiting,
-            deferred_replaced=replaced,
+            **extra,  # type: ignore[arg-type]
         )
 
     # ------------------------------------------------------------------ whole maps
-    def drop(self) -> None:
-        """Forget the map and any rebuild in flight (its result will be ignored)."""
+    def drop(self, *, floor: float | None = None) -> None:
+        """Forget the map and any rebuild in flight (its result will be ignored). ``floor``: the
+        absolute mean confidence the next map's keyframe 0 must reach (None: any frame)."""
         self._mapper.discard()
+        self._taken = self._started
         self.map = None
         self._rebuild_foreign = False
+        self._floor = floor
         self._clear_counters()
 
     def convert_cache(self, dtype: str, device: str) -> None:
@@ -134,6 +160,27 @@ class MapKeeper:
         self._rebuild_foreign = rebuild
         self.generation = max(self.generation, kf_map.generation)
         self._next_keyframe_id = max(self._next_keyframe_id, max(kf_map.keyframe_ids) + 1)
+        self._count_from_next = True
+
+    def may_start(self, index: int) -> bool:
+        """Whether a pass may start at frame ``index`` (not during a failure's backoff or after a
+        rejection's wait)."""
+        return index >= self._retry_frame
+
+    # ------------------------------------------------------------------ waiting (no tracker lock)
+    def settle_target(self) -> int:
+        """A ticket for "the rebuilds pending or waiting now": pass it to ``settled``."""
+        return self._started + (1 if self._waiting is not None else 0)
+
+    def settled(self, target: int) -> bool:
+        """Whether the rebuilds of ``target`` (from ``settle_target``) were taken, or nothing is
+        pending or waiting any more (a waiting candidate may be dropped without a rebuild)."""
+        return self._taken >= target or not (self._mapper.pending or self._waiting is not None)
+
+    def wait(self, timeout: float | None) -> bool:
+        """Wait until the pending rebuild has finished (not installed: ``collect`` does that).
+        Called without the tracker's lock, so frames keep flowing meanwhile."""
+        return self._mapper.wait(timeout)
 
     # ------------------------------------------------------------------ keyframes
     @property
@@ -156,6 +203,10 @@ class MapKeeper:
             return False
         if not self.extendable:
             return False  # a map from another preprocessing is tracked against, never extended
+        if self._count_from_next:  # the first frame tracked against a loaded map starts the count
+            self._count_from_next = False
+            self._last_proposed_frame = index
+            return False
         capacity = self._budget.capacity(kf_map.cache.bytes_per_keyframe())
         if capacity is not None and capacity < 2:
             return False  # the budget holds keyframe 0 only
@@ -230,7 +281,12 @@ class MapKeeper:
         )
         self._next_keyframe_id += 1
         self._last_proposed_frame = max(self._last_proposed_frame, index)  # bootstraps count too
-        request = RebuildRequest(previous, keep, evicted, candidate, cause, self.generation + 1)
+        floor = self._floor if previous is None else None
+        request = RebuildRequest(
+            previous, keep, evicted, candidate, cause, self.generation + 1, min_confidence=floor
+        )
+        self._request = request
+        self._started += 1
         self._mapper.submit(
             partial(
                 build_map,
@@ -243,35 +299,63 @@ class MapKeeper:
         return candidate.keyframe_id
 
     def collect(
-        self, backend: Backend, index: int, *, timeout: float | None = 0.0
-    ) -> RebuildOutcome | None:
-        """Install a finished rebuild if accepted (or note its rejection), then start the waiting
-        candidate's rebuild, if any, on ``backend``. ``index`` is the current frame.
+        self, backend: Backend, *, timeout: float | None = 0.0
+    ) -> RebuildOutcome | MappingFailure | None:
+        """Install a finished rebuild if accepted (or note its rejection or failure), then start
+        the waiting candidate's rebuild, if any, on ``backend``.
 
-        Returns the outcome, or None when no rebuild finished within ``timeout`` seconds.
+        Returns the outcome (a ``MappingFailure`` if the pass failed: it never raises), or None
+        when no rebuild finished within ``timeout`` seconds.
         """
+        request = self._request
         try:
             outcome = self._mapper.take(timeout=timeout)
-        except Exception:
-            # the pass failed: its candidate never existed, so the next frame may propose again
-            self._in_flight, self._last_proposed_frame = (), self._last_accepted_frame
-            raise
+        except Exception as exc:  # any backend failure: the frame loop must go on
+            assert request is not None  # a pending job always has its request
+            return self._failed(backend, request, exc)
         if outcome is None:
             return None
-        self._in_flight = ()
+        self._taken, self._request = self._started, None
+        self._in_flight, self._consecutive_failures, self._last_error = (), 0, None
         candidate_frame = outcome.request.candidate.frame_index
         if outcome.accepted:
             self.map = outcome.new_map  # the atomic swap: readers see the old map or the new one
             self.generation = outcome.new_map.generation
             self._last_accepted_frame = candidate_frame
+            self._floor = None
         else:
             # timed from the candidate's frame (not from when the worker finished): deterministic
             self._retry_frame = candidate_frame + self._config.rejection.retry_after_frames
             self._last_proposed_frame = self._last_accepted_frame
+        self._start_waiting(backend)
+        return outcome
+
+    def _failed(
+        self, backend: Backend, request: RebuildRequest, exc: Exception
+    ) -> MappingFailure:
+        """Note a failed pass: the map stays, the candidate never existed, retries back off."""
+        self._taken, self._request = self._started, None
+        error = mapping_error(exc, request)
+        self._failed_passes += 1
+        self._consecutive_failures += 1
+        self._last_error = error
+        candidate = request.candidate
+        if self._next_keyframe_id == candidate.keyframe_id + 1:
+            self._next_keyframe_id = candidate.keyframe_id  # no event named it: not burnt
+        retry_at = candidate.frame_index + backoff_frames(self._consecutive_failures)
+        self._retry_frame = max(self._retry_frame, retry_at)
+        # the next frame past the backoff may propose again
+        self._in_flight, self._last_proposed_frame = (), self._last_accepted_frame
+        _log.warning("mapping pass failed", cause=request.cause, frame_index=candidate.frame_index,
+                     error=str(error), retry_at_frame=retry_at)
+        self._start_waiting(backend)
+        return MappingFailure(request, error, self._consecutive_failures, retry_at)
+
+    def _start_waiting(self, backend: Backend) -> None:
+        """Start the waiting candidate's rebuild, unless it fell into a wait (then drop it)."""
         waiting, self._waiting = self._waiting, None
         if waiting is not None and self.map is not None and waiting.index >= self._retry_frame:
             self._start_keyframe(backend, waiting)
-        return outcome
 
     def close(self) -> None:
         self._mapper.close()

@@ -76,6 +76,12 @@ class Mapper(Generic[T]):
         self._pending = None
         return pending.result()  # re-raises the job's exception on this thread
 
+    def wait(self, timeout: float | None) -> bool:
+        """Wait (without taking it) until the job pending now has finished; True if it has, or if
+        none is pending. Needs no lock: the tracker calls it without holding its own."""
+        pending = self._pending
+        return pending is None or wait([pending], timeout=timeout).done != set()
+
     def discard(self) -> None:
         """Forget the pending job; its result (or error) will never be taken."""
         self._pending = None

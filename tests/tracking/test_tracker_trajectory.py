@@ -10,6 +10,8 @@ import pytest
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth
+from kvtracker_sdk.tracking.events import WorldFrameChangedEvent
+from kvtracker_sdk.types import StateReason
 from tests.tracking.sim_session import SIZE, drive, make_tracker
 
 MAPPING_MODES = [pytest.param(False, id="sync"), pytest.param(True, id="async")]
@@ -124,6 +126,10 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
     assert session.ate() < 1.5 * backend.expected_translation_rmse
 
 
+# The loss lasts frames 200-299. "reset"/"new_map" drop the map when relocalisation times out
+# (frame 232); a new map must then start from a frame as confident as the lost map's were in
+# absolute terms (issue 12, item 1): bootstraps from frames taken during the loss are rejected
+# (retried every `retry_after_frames` = 15 frames), the first one after it is accepted.
 @pytest.mark.parametrize(
     ("policy", "expected"),
     [
@@ -133,6 +139,8 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
                 ("TRACKING", "RELOCALIZING", "LOW_CONFIDENCE", 202),
                 ("RELOCALIZING", "RELOCALIZING", "TIMEOUT", 232),
                 ("RELOCALIZING", "RELOCALIZING", "TIMEOUT", 262),
+                ("RELOCALIZING", "RELOCALIZING", "TIMEOUT", 292),
+                ("RELOCALIZING", "TRACKING", "RELOCALIZED", 302),
             ],
         ),
         (
@@ -141,7 +149,7 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
                 ("TRACKING", "RELOCALIZING", "LOW_CONFIDENCE", 202),
                 ("RELOCALIZING", "INIT", "TIMEOUT", 232),
                 ("INIT", "MAPPING", "BOOTSTRAP", 233),
-                ("MAPPING", "TRACKING", "BOOTSTRAP", 233),
+                ("MAPPING", "TRACKING", "BOOTSTRAP", 308),  # attempts 233, 248, ..., 293 rejected
             ],
         ),
         (
@@ -149,17 +157,37 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
             [
                 ("TRACKING", "RELOCALIZING", "LOW_CONFIDENCE", 202),
                 ("RELOCALIZING", "MAPPING", "NEW_MAP", 232),
-                ("MAPPING", "TRACKING", "NEW_MAP", 232),
+                ("MAPPING", "TRACKING", "NEW_MAP", 307),  # attempts 232, 247, ..., 292 rejected
             ],
         ),
     ],
 )
-def test_relocalisation_timeout_policies(tum: GroundTruth, policy: str, expected: list) -> None:
-    backend = SimulatedBackend(tum, loss_segments=[(200, 1000)])
-    config = {"relocalization": {"lost_after": 3, "timeout_frames": 30, "timeout_policy": policy}}
+@pytest.mark.parametrize("async_mapping", MAPPING_MODES)
+def test_relocalisation_timeout_policies(
+    tum: GroundTruth, policy: str, expected: list, async_mapping: bool
+) -> None:
+    backend = SimulatedBackend(tum, loss_segments=[(200, 300)])
+    config = {
+        "relocalization": {"lost_after": 3, "timeout_frames": 30, "timeout_policy": policy},
+        "threading": {"async_mapping": async_mapping},
+    }
+    changes: list[WorldFrameChangedEvent] = []
     with make_tracker(backend, **config) as tracker:
-        session = drive(tracker, backend, stop=263)
-    assert session.moves()[2 : 2 + len(expected)] == expected
-    if policy != "stay":
-        assert session.maps[-1].cause == ("new_map" if policy == "new_map" else "bootstrap")
-        assert tracker.keyframe_map is not None and tracker.keyframe_map.keyframe_ids[0] > 0
+        tracker.on_world_frame_changed(changes.append)
+        session = drive(tracker, backend, stop=320, pace=True)
+    assert session.moves()[2:] == expected
+    # no pose from a frame of the loss is ever trusted (it used to be: ~1 m errors, pose_valid)
+    assert not any(r.pose_valid for r in session.results[200:300])
+    assert all(r.pose_valid for r in session.results[310:])
+    if policy == "stay":
+        assert changes == [] and tracker.map_status.keyframe_ids[0] == 0
+        return
+    first = 308 if policy == "reset" else 307
+    bootstraps = [e for e in session.rejected if e.frame_index >= 200]
+    assert [e.frame_index for e in bootstraps] == list(range(first - 75, first, 15))
+    assert all(e.confidence < e.reference_confidence and e.ratio == 1.0 for e in bootstraps)
+    assert session.maps[-1].cause == ("new_map" if policy == "new_map" else "bootstrap")
+    assert tracker.keyframe_map is not None and tracker.keyframe_map.keyframes[0].frame_index == first
+    # the app is told that poses from now on are in another world frame, and why
+    reason = StateReason.NEW_MAP if policy == "new_map" else StateReason.TIMEOUT
+    assert changes == [WorldFrameChangedEvent(reason, 4, 5, first)]  # keyframes at 0, 50, 100, 150
