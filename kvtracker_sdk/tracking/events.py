@@ -11,7 +11,7 @@ concurrently with each other for one tracker, provided the app calls it from one
 An exception raised by a callback is logged (with traceback) under ``kvtracker_sdk.tracking.events``
 and swallowed: a broken UI callback must not stop the camera loop. Every event is also logged when
 it happens, as a structured INFO line (``state_change``, ``keyframe``, ``keyframe_rejected``,
-``map_updated``) carrying the payload's scalar fields.
+``map_updated``, ``world_frame_changed``, ``backend_failed``) carrying the payload's scalar fields.
 """
 
 from __future__ import annotations
@@ -102,7 +102,11 @@ class KeyframeEvent:
 
 @dataclass(frozen=True)
 class KeyframeRejectedEvent:
-    """A candidate keyframe was rejected and the previous map (and cache) kept."""
+    """A candidate keyframe was rejected and the previous map (and cache) kept.
+
+    Also sent for a new map's first frame (after a relocalisation timeout) that did not reach the
+    absolute confidence floor: then ``reference_confidence`` is that floor and ``ratio`` is 1.
+    """
 
     keyframe_id: int  # the id the candidate would have had (never reused)
     frame_index: int

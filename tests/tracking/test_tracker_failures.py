@@ -148,6 +148,7 @@ def tum(tum_dir: Path) -> GroundTruth:
     return GroundTruth.from_tum(tum_dir / "groundtruth.txt", rate_hz=30.0)
 
 
+@pytest.mark.slow  # a whole trajectory: ~3,000 frames (a few seconds each mode)
 @pytest.mark.parametrize("async_mapping", MAPPING_MODES)
 def test_random_backend_failures_through_the_whole_walk(
     tum: GroundTruth, async_mapping: bool
