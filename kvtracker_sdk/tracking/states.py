@@ -4,12 +4,8 @@ Like ``h11/_state.py``: no I/O, no tracker knowledge, every legal move listed on
 facade is the only caller; anything not in the table is a bug and raises
 :class:`~kvtracker_sdk.errors.IllegalTransitionError`.
 
-    INIT ──BOOTSTRAP──> MAPPING ──BOOTSTRAP, NEW_MAP──> TRACKING ──LOW_CONFIDENCE──> RELOCALIZING
-                                                        TRACKING <──RELOCALIZED──── RELOCALIZING
-    RELOCALIZING ──TIMEOUT──> INIT (policy "reset") | itself (policy "stay")
-    RELOCALIZING ──NEW_MAP──> MAPPING (policy "new_map")
-    MAPPING, TRACKING, RELOCALIZING ──RESET──> INIT               (reset())
-    INIT, MAPPING, TRACKING, RELOCALIZING ──MAP_LOADED──> RELOCALIZING   (a saved map installed)
+The diagrams in ``README.md`` and ``docs/architecture.md`` are drawn from this table by
+``state_diagram.mermaid_state_diagram`` (a test compares them).
 """
 
 from __future__ import annotations
