@@ -59,11 +59,11 @@ def real(weights: str, source: str, frames: int) -> Setup:
 
     def second() -> Backend:
         try:
-            from kvtracker_sdk.backends.onnx import OnnxBackend
+            from kvtracker_sdk.export_onnx import onnx_backend
         except ImportError:  # the [onnx] extra (or the ONNX backend) is not installed
             print("ONNX backend unavailable: swapping to PyTorch bfloat16 instead")
             return TorchBackend.from_pretrained(weights, dtype=torch.bfloat16)
-        return OnnxBackend.from_pretrained(weights)
+        return onnx_backend(weights)  # exported once into a cache folder
 
     first = TorchBackend.from_pretrained(weights)
     stranger = SimulatedBackend(orbit(10))

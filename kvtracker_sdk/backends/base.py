@@ -14,7 +14,6 @@ runtime (torch/onnx), device or dtype.
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -22,36 +21,11 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import torch
 
-from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+from kvtracker_sdk.cache.backend_info import BackendInfo
+from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["Backend", "BackendInfo", "MapResult", "TrackResult"]
-
-
-@dataclass(frozen=True)
-class BackendInfo:
-    """Identity and properties of a backend."""
-
-    backend: str  # runtime: "torch", "onnx", "simulated"
-    model: str  # e.g. "pi3", "da3-small", "pi3-custom"
-    family: str  # "pi3", "da3", "simulated": caches never cross families
-    config_hash: str  # hash of the architecture configuration
-    weights_fingerprint: str  # hash of the weights (content, not path)
-    patch_size: int
-    extra_tokens_per_frame: int  # tokens per frame besides the patches (Pi3: 5 registers)
-    layout: CacheLayout
-    dtype: str  # compute / cache dtype, e.g. "float32", "bfloat16"
-    device: str = "cpu"
-    accelerations: tuple[str, ...] = ()  # optional fast paths detected at construction
-
-    @property
-    def fingerprint(self) -> str:
-        """Identity of the function computed: family + config + weights (16 hex chars)."""
-        text = f"{self.family}|{self.config_hash}|{self.weights_fingerprint}"
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-    def tokens_per_frame(self, height: int, width: int) -> int:
-        return self.extra_tokens_per_frame + (height // self.patch_size) * (width // self.patch_size)
 
 
 def _readonly(array: np.ndarray | None) -> np.ndarray | None:

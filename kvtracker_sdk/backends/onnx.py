@@ -2,7 +2,7 @@
 
     backend = OnnxBackend("pi3-onnx/")                      # kvtracker export-onnx made the folder
     backend = OnnxBackend("da3-small-onnx/", device="cuda") # with onnxruntime-gpu installed
-    backend = OnnxBackend.from_pretrained("model.safetensors")   # exported once, then reused
+    backend = onnx_backend("model.safetensors")             # kvtracker_sdk.export_onnx: exported once
     mapped = backend.map(keyframes)                         # uint8 [N, H, W, 3] at model resolution
     result = backend.track(frame, mapped.cache, heads=HeadSet.CAMERA)
 
@@ -36,7 +36,7 @@ from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, providers_for
 from kvtracker_sdk.cache.kv_cache import KVCache
-from kvtracker_sdk.errors import ImageShapeError, StateError
+from kvtracker_sdk.errors import ImageShapeError, ModelError, StateError
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["OnnxBackend"]
@@ -79,20 +79,19 @@ class OnnxBackend:
         device: str = "cpu",
         providers: Sequence[Any] | None = None,
         threads: int | None = None,
-        cache_dir: str | os.PathLike[str] | None = None,
     ) -> OnnxBackend:
-        """An export folder, or a checkpoint of either family (model name such as ``da3-small``,
-        file, folder or hub id) exported on first use.
+        """An export folder (as ``TorchBackend.from_pretrained`` takes a checkpoint).
 
-        A checkpoint is exported once into ``cache_dir`` and reused afterwards
-        (``kvtracker_sdk.export_onnx.reuse``; that first call needs PyTorch and the ``[onnx]``
-        extra, and takes minutes for the full model). Deployments ship the export folder.
+        A checkpoint is exported by a layer above this one: ``kvtracker_sdk.export_onnx.
+        onnx_backend(checkpoint)`` exports it once into a cache folder and serves the export
+        (``kvtracker track --backend onnx --weights model.safetensors`` does that).
         """
         folder = Path(source)
         if not (folder / MANIFEST_NAME).is_file():
-            from kvtracker_sdk.export_onnx.reuse import exported_folder
-
-            folder = exported_folder(source, cache_dir=cache_dir)
+            raise ModelError(
+                f"{source} is not an ONNX export (no {MANIFEST_NAME}); export a checkpoint with "
+                "kvtracker_sdk.export_onnx.onnx_backend(weights) or `kvtracker export-onnx`"
+            )
         return cls(folder, device=device, providers=providers, threads=threads)
 
     # ------------------------------------------------------------------ Backend protocol

@@ -62,11 +62,11 @@ def open_backend(
         if dtype_name != ComputeDtype.FLOAT32.value:
             raise ConfigError("the ONNX backend runs the exported graphs' dtype; drop --dtype")
         try:
-            module = importlib.import_module("kvtracker_sdk.backends.onnx")
+            module = importlib.import_module("kvtracker_sdk.export_onnx.reuse")
         except ImportError as exc:
             raise MissingDependencyError(
                 f"the ONNX backend needs onnxruntime: pip install 'kvtracker-sdk[onnx]' ({exc})"
             ) from exc
-        backend: Backend = module.OnnxBackend.from_pretrained(weights, device=device)
+        backend: Backend = module.onnx_backend(weights, device=device)
         return backend
     raise ConfigError(f"unknown backend {kind!r}")  # pragma: no cover - typer checks the choice

@@ -1,7 +1,8 @@
 """Export tooling: Pi3 or Depth Anything 3 to a folder of ONNX graphs + ``manifest.json`` (served by ``OnnxBackend``).
 
 Needs the ``[onnx]`` extra (onnx, onnxscript, onnx-ir, onnxruntime) and PyTorch; the command
-line is ``kvtracker export-onnx``. See ``exporter.py``.
+line is ``kvtracker export-onnx``. See ``exporter.py``; ``onnx_backend(checkpoint)`` (``reuse.py``)
+exports a checkpoint once and serves it.
 """
 
 from kvtracker_sdk.export_onnx.exporter import (
@@ -10,5 +11,13 @@ from kvtracker_sdk.export_onnx.exporter import (
     export_model,
     export_onnx,
 )
+from kvtracker_sdk.export_onnx.reuse import exported_folder, onnx_backend
 
-__all__ = ["DEFAULT_CHECK_SIZE", "DEFAULT_OPSET", "export_model", "export_onnx"]
+__all__ = [
+    "DEFAULT_CHECK_SIZE",
+    "DEFAULT_OPSET",
+    "export_model",
+    "export_onnx",
+    "exported_folder",
+    "onnx_backend",
+]

@@ -1,4 +1,4 @@
-"""Checkpoints exported once and reused: what ``OnnxBackend.from_pretrained(checkpoint)`` serves.
+"""Checkpoints exported once and reused: ``onnx_backend(checkpoint)`` serves an ``OnnxBackend``.
 
 ``exported_folder(weights)`` loads a checkpoint of either family (model name, ``.safetensors``
 file, folder or hub id), and returns ``<cache_dir>/<family>-<weights fingerprint>``, exporting into it first unless an export
@@ -12,11 +12,13 @@ checked against PyTorch); later calls only hash the weights.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import cast
+from typing import Any, cast
 
+from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_integrity import verify_files
-from kvtracker_sdk.backends.onnx_manifest import read_manifest
+from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, read_manifest
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx.exporter import export_model
 from kvtracker_sdk.log import get_logger
@@ -24,7 +26,7 @@ from kvtracker_sdk.models.da3 import DepthAnything3
 from kvtracker_sdk.models.pi3 import Pi3
 from kvtracker_sdk.models.registry import load_model
 
-__all__ = ["default_cache_dir", "exported_folder"]
+__all__ = ["default_cache_dir", "exported_folder", "onnx_backend"]
 
 _log = get_logger(__name__)
 
@@ -59,3 +61,21 @@ def exported_folder(
         overwrite=True,
     )
     return folder
+
+
+def onnx_backend(
+    source: str | os.PathLike[str],
+    *,
+    device: str = "cpu",
+    providers: Sequence[Any] | None = None,
+    threads: int | None = None,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> OnnxBackend:
+    """An ``OnnxBackend`` over an export folder, or over a checkpoint of either family (model
+    name such as ``da3-small``, file, folder or hub id) exported on first use into
+    ``cache_dir`` (``exported_folder``; that first call takes minutes for the full model).
+    Deployments ship the export folder."""
+    folder = Path(source)
+    if not (folder / MANIFEST_NAME).is_file():
+        folder = exported_folder(source, cache_dir=cache_dir)
+    return OnnxBackend(folder, device=device, providers=providers, threads=threads)

@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 
 from kvtracker_sdk._version import __version__
-from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import (

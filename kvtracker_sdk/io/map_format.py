@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapVersionError

@@ -192,7 +192,7 @@ def test_folders_that_are_not_exports_are_refused(golden_onnx_dir: Path, tmp_pat
         OnnxBackend(broken)
 
 
-def test_from_pretrained_exports_a_checkpoint_once(
+def test_onnx_backend_exports_a_checkpoint_once(
     golden_onnx_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from kvtracker_sdk.export_onnx import reuse
@@ -206,12 +206,15 @@ def test_from_pretrained_exports_a_checkpoint_once(
         shutil.copytree(golden_onnx_dir, folder, dirs_exist_ok=True)
 
     monkeypatch.setattr(reuse, "export_model", export)
-    first = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
-    again = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
+    first = reuse.onnx_backend(weights, cache_dir=tmp_path, threads=1)
+    again = reuse.onnx_backend(weights, cache_dir=tmp_path, threads=1)
     assert first.folder == again.folder == slot and exports == [slot]  # exported once
     assert first.info.fingerprint == TorchBackend.from_pretrained(weights).info.fingerprint
     manifest = json.loads((slot / "manifest.json").read_text())
     (slot / "manifest.json").write_text(json.dumps({**manifest, "format_version": 0}))
-    OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
+    reuse.onnx_backend(weights, cache_dir=tmp_path, threads=1)
     assert exports == [slot, slot]  # a stale export in the slot is replaced
-    assert OnnxBackend.from_pretrained(slot, threads=1).folder == slot  # a folder loads as is
+    assert reuse.onnx_backend(slot, threads=1).folder == slot  # a folder loads as is
+    assert OnnxBackend.from_pretrained(slot, threads=1).folder == slot
+    with pytest.raises(ModelError, match="not an ONNX export"):  # exporting is a layer above
+        OnnxBackend.from_pretrained(weights)
