@@ -19,6 +19,7 @@ weights needs the real checkpoint).
 
     python -m benchmarks.onnx_vs_torch --config mid large --keyframes 1 8 32 --threads 2 --int8
     python -m benchmarks.onnx_vs_torch --config da3-small da3-base --keyframes 1 8 32 --int8
+    python -m benchmarks.onnx_vs_torch --config tiny --weights model.safetensors   # a checkpoint
 
 Writes ``benchmarks/results/<name>.json`` (default ``onnx_vs_torch_<size>_<threads>thread``).
 """
@@ -48,6 +49,7 @@ from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.backends.torch_families import family_adapter
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx import export_model
+from kvtracker_sdk.models.registry import load_model
 
 RESULTS = Path(__file__).parent / "results"
 DA3_CONFIGS = sorted(name for name in model_families.MODELS if name.startswith("da3-"))
@@ -130,8 +132,10 @@ def bench_config(
     name: str, args: argparse.Namespace, configs: dict[str, Any]
 ) -> list[dict[str, Any]]:
     """Rows (one per N and head set) for preset ``name``; its architecture goes to ``configs``."""
-    if name in PRESETS:
-        model: torch.nn.Module = build_model(PRESETS[name](), torch.float32)
+    if args.weights is not None:  # a checkpoint instead of a random-weight preset
+        model: torch.nn.Module = load_model(args.weights).model
+    elif name in PRESETS:
+        model = build_model(PRESETS[name](), torch.float32)
     else:
         model = model_families.build_model(name, torch.float32)
     configs[name] = model.config.model_dump(mode="json")  # type: ignore[operator]
@@ -211,6 +215,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--keep-denormals", action="store_true", help="PyTorch: no flush to zero")
     parser.add_argument("--onnx-dir", type=Path,
                         default=Path(tempfile.gettempdir()) / "kvtracker-onnx-bench")  # fmt: skip
+    parser.add_argument("--weights", type=Path,
+                        help="time this checkpoint (fp32) instead of --config's random weights; "
+                             "--config then only names it")  # fmt: skip
     parser.add_argument("--name", help="output file stem")
     parser.add_argument("--out-dir", type=Path, default=RESULTS)
     return parser.parse_args(argv)

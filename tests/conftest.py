@@ -7,8 +7,11 @@ absence is a failure (CI must never go green by skipping the parity tests).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -50,29 +53,54 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(threads)
 
 
-@pytest.fixture(scope="session")
-def golden_onnx_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The golden Pi3 weights exported to ONNX (``kvtracker_sdk.export_onnx``), once per session.
+@dataclass(frozen=True)
+class OnnxExport:
+    """A family's golden weights exported once per session by ``kvtracker export-onnx --json``."""
 
-    The export is checked against PyTorch as it is written; ~30-60 s on a 2-core CPU.
+    family: str
+    folder: Path
+    weights: Path  # the golden checkpoint it was exported from
+    exit_code: int  # of the command
+    manifest_json: dict[str, Any]  # what the command printed
+
+
+@pytest.fixture(scope="session")
+def onnx_exports(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], OnnxExport]:
+    """``onnx_exports(family)``: THE export of a family for the whole session (``pi3``, ``da3``).
+
+    Exporting costs 30-60 s of CPU per family (``torch.onnx.export`` of five or six graphs, then
+    the check against PyTorch), so every test that needs an export shares this one; it is made
+    on first use through the command line, so the command's whole path runs once too.
     """
-    dev_dependency("onnxruntime")
-    from kvtracker_sdk.export_onnx import export_onnx
+    made: dict[str, OnnxExport] = {}
 
-    folder = tmp_path_factory.mktemp("onnx") / "pi3-golden"
-    export_onnx(folder, weights=shared_path("golden", "pi3", "weights.safetensors"))
-    return folder
+    def export(family: str) -> OnnxExport:
+        if family not in made:
+            dev_dependency("onnxruntime")
+            from tests.cli.invoke import invoke
+
+            weights = shared_path("golden", family, "weights.safetensors")
+            folder = tmp_path_factory.mktemp("onnx") / f"{family}-golden"
+            result = invoke("export-onnx", "--weights", weights, "--out", folder, "--json")
+            assert result.exit_code == 0, result.output
+            made[family] = OnnxExport(
+                family, folder, weights, result.exit_code, json.loads(result.stdout)
+            )
+        return made[family]
+
+    return export
 
 
 @pytest.fixture(scope="session")
-def golden_da3_onnx_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The golden (reduced) DA3 weights exported to ONNX, once per session; ~50 s on 2 cores."""
-    dev_dependency("onnxruntime")
-    from kvtracker_sdk.export_onnx import export_onnx
+def golden_onnx_dir(onnx_exports: Callable[[str], OnnxExport]) -> Path:
+    """The golden Pi3 export of the session (``onnx_exports("pi3")``)."""
+    return onnx_exports("pi3").folder
 
-    folder = tmp_path_factory.mktemp("onnx") / "da3-golden"
-    export_onnx(folder, weights=shared_path("golden", "da3", "weights.safetensors"))
-    return folder
+
+@pytest.fixture(scope="session")
+def golden_da3_onnx_dir(onnx_exports: Callable[[str], OnnxExport]) -> Path:
+    """The golden (reduced) DA3 export of the session (``onnx_exports("da3")``)."""
+    return onnx_exports("da3").folder
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -81,3 +109,11 @@ def onnx_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("KVTRACKER_CACHE_DIR", str(tmp_path_factory.mktemp("kvtracker-cache")))
         yield
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test that needs a session ONNX export is ``slow`` (``-m "not slow"`` skips them all;
+    the README's command runs them)."""
+    for item in items:
+        if "onnx_exports" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)

@@ -1,20 +1,35 @@
-"""Smoke test of ``benchmarks/onnx_vs_torch.py`` on the tiny preset (no timing checks)."""
+"""Smoke test of ``benchmarks/onnx_vs_torch.py`` (no timing checks) on the golden Pi3 checkpoint,
+whose export the session already made (``onnx_exports``): the benchmark finds it in
+``--onnx-dir/<config>`` with the same fingerprint and reuses it instead of exporting again."""
 
 from __future__ import annotations
 
 import json
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
+import pytest
+
 from benchmarks.onnx_vs_torch import main, markdown_table
+from tests.conftest import OnnxExport
 from tests.helpers import dev_dependency
 
 
-def test_main_exports_times_and_reuses_the_export(tmp_path: Path) -> None:
+@pytest.mark.slow
+def test_main_times_and_reuses_the_export(
+    tmp_path: Path, onnx_exports: Callable[[str], OnnxExport]
+) -> None:
     dev_dependency("onnxruntime")
+    export = onnx_exports("pi3")
+    shutil.copytree(export.folder, tmp_path / "onnx" / "tiny")  # int8 graphs go beside it
+    manifest = tmp_path / "onnx" / "tiny" / "manifest.json"
+    stamp = manifest.stat().st_mtime_ns
     # --keep-denormals: flushing them is process-wide CPU state (hypothesis tests detect it)
     argv = ["--config", "tiny", "--size", "56", "--keyframes", "1", "2", "--heads", "camera",
             "--threads", "1", "--int8", "--warmup", "0", "--repeats", "2", "--keep-denormals",
-            "--onnx-dir", str(tmp_path / "onnx"), "--name", "smoke", "--out-dir", str(tmp_path)]  # fmt: skip
+            "--onnx-dir", str(tmp_path / "onnx"), "--weights", str(export.weights),
+            "--name", "smoke", "--out-dir", str(tmp_path)]  # fmt: skip
     result = main(argv)
 
     written = json.loads((tmp_path / "smoke.json").read_text())
@@ -29,7 +44,6 @@ def test_main_exports_times_and_reuses_the_export(tmp_path: Path) -> None:
     table = markdown_table(written).splitlines()
     assert len(table) == 2 + 2 and table[-1].startswith("| tiny | 2 | camera |")
 
-    manifest = tmp_path / "onnx" / "tiny" / "manifest.json"
-    stamp = manifest.stat().st_mtime_ns
+    assert manifest.stat().st_mtime_ns == stamp  # same weights: the session's export is reused
     main(argv[:-4] + ["--keyframes", "1", "--name", "again", "--out-dir", str(tmp_path)])
     assert manifest.stat().st_mtime_ns == stamp  # same weights: the export is reused

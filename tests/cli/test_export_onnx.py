@@ -1,13 +1,18 @@
-"""``kvtracker export-onnx``: a random-weight export of a tiny config, then tracking with it.
+"""``kvtracker export-onnx``: the session's golden exports (made by this command, see
+``tests/conftest.py::onnx_exports``), the random-weights path of a config file, and
+``kvtracker track --backend onnx`` reading an export.
 
-One small export per family (~10-20 s each): the command's whole path (config file, random
-weights, summary, manifest) and ``kvtracker track --backend onnx`` reading the result.
+Exports are the slowest thing the suite does (30-60 s of CPU each): the command's real export
+is the session's one per family; the random-weights test checks what the command hands to the
+exporter (network, weights fingerprint, check size) without exporting again.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,57 +21,88 @@ from kvtracker_sdk.cli.export_onnx import parse_size
 from kvtracker_sdk.cli.failures import ExitCode
 from kvtracker_sdk.errors import ConfigError
 from tests.cli.invoke import invoke
-from tests.helpers import dev_dependency
+from tests.conftest import OnnxExport
 from tests.models.da3.factories import tiny_config as tiny_da3_config
 from tests.models.pi3.factories import tiny_config
 
+FAMILIES = ("pi3", "da3")
 TINY = {
     "pi3": tiny_config(depth=2),  # one global layer: the smallest Pi3 there is
     "da3": tiny_da3_config(),  # 6 blocks, 2 of them global
 }
 
 
-@pytest.fixture(scope="module", params=sorted(TINY))
-def tiny_export(
-    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
-) -> tuple[Path, dict[str, object]]:
-    dev_dependency("onnxruntime")
-    folder = tmp_path_factory.mktemp("cli-onnx")
-    config = folder / "tiny.json"
-    config.write_text(TINY[request.param].model_dump_json())
-    out = folder / "tiny-onnx"
-    args = ["export-onnx", "--out", out, "--random-weights", "--config", config, "--seed", "3"]
-    result = invoke(*args, "--check-size", "56x70", "--json")
-    assert result.exit_code == 0, result.output
-    return out, json.loads(result.stdout)
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
+def test_export_of_a_checkpoint_prints_its_manifest(
+    onnx_exports: Callable[[str], OnnxExport], family: str
+) -> None:
+    from kvtracker_sdk.backends.onnx_manifest import read_manifest
+    from kvtracker_sdk.backends.torch_backend import TorchBackend
+
+    export = onnx_exports(family)
+    assert export.exit_code == 0
+    assert (export.folder / "manifest.json").is_file() and (export.folder / "weights.bin").is_file()
+    manifest = read_manifest(export.folder)
+    assert export.manifest_json == json.loads(manifest.model_dump_json())
+    assert export.manifest_json["family"] == family
+    assert export.manifest_json["check_resolution"] == [126, 168]  # the command's default
+    torch_info = TorchBackend.from_pretrained(export.weights).info
+    assert export.manifest_json["fingerprint"] == torch_info.fingerprint
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
 def test_random_weights_export_of_a_config_file(
-    tiny_export: tuple[Path, dict[str, object]],
+    family: str,
+    onnx_exports: Callable[[str], OnnxExport],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     import torch
 
+    from kvtracker_sdk.backends.onnx_manifest import read_manifest
     from kvtracker_sdk.backends.torch_backend import TorchBackend
+    from kvtracker_sdk.export_onnx import exporter
     from kvtracker_sdk.models.da3 import DepthAnything3
     from kvtracker_sdk.models.pi3 import Pi3
 
-    out, manifest = tiny_export
-    family = str(manifest["family"])
+    printed = read_manifest(onnx_exports(family).folder)  # what the spy answers with
+    calls: list[dict[str, Any]] = []
+
+    def spy(model: torch.nn.Module, out_dir: Path, **options: Any) -> object:
+        calls.append({"model": model, "out_dir": Path(out_dir), **options})
+        return printed
+
+    monkeypatch.setattr(exporter, "export_model", spy)
     config = TINY[family]
-    assert (out / "manifest.json").is_file() and (out / "weights.bin").is_file()
-    assert type(config).model_validate(manifest["config"]) == config
-    assert manifest["check_resolution"] == [56, 70]
+    (tmp_path / "tiny.json").write_text(config.model_dump_json())
+    out = tmp_path / "tiny-onnx"
+    result = invoke(
+        "export-onnx", "--out", out, "--random-weights", "--config", tmp_path / "tiny.json",
+        "--seed", "3", "--check-size", "56x70", "--json",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout) == json.loads(printed.model_dump_json())
+    (call,) = calls
+    assert call["out_dir"] == out and call["check_size"] == (56, 70)
+    assert call["model"].config == config
     torch.manual_seed(3)  # the export's random weights are the family's network under the seed
     network = Pi3(config) if family == "pi3" else DepthAnything3(config)  # type: ignore[arg-type]
-    assert manifest["fingerprint"] == TorchBackend(network).info.fingerprint
+    exported = call["model"].state_dict()
+    assert all(torch.equal(value, exported[key]) for key, value in network.state_dict().items())
+    fingerprint = TorchBackend(network).info.weights_fingerprint
+    assert call["weights_fingerprint"] == fingerprint
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
 def test_track_with_the_onnx_backend(
-    tiny_export: tuple[Path, dict[str, object]], tmp_path: Path
+    onnx_exports: Callable[[str], OnnxExport], family: str, tmp_path: Path
 ) -> None:
     import cv2
 
-    out, _ = tiny_export
+    out = onnx_exports(family).folder
     frames = tmp_path / "frames"
     frames.mkdir()
     rng = np.random.default_rng(0)

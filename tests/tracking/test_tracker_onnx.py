@@ -1,8 +1,8 @@
 """A tracker session on the 20 real TUM frames: ONNX Runtime, PyTorch, and a live swap between them.
 
-Both families, with their golden (small, random) weights exported once per test session — Pi3
-and Depth Anything 3 (``family`` parametrises the module's fixtures). Both runtimes compute
-the same fp32 function, so every pose agrees within 1e-4 (the issue's tolerance) whichever
+Both families, with their golden (small, random) weights exported once per test session
+(``onnx_exports``, shared with every test that needs an export) — Pi3 and Depth Anything 3
+(``family`` parametrises the module's fixtures). Both runtimes compute the same fp32 function, so every pose agrees within 1e-4 (the issue's tolerance) whichever
 backend tracked it and whichever built the map. Keyframes every 5 frames: 4 mapping passes, so
 maps made by one runtime are tracked and rebuilt by the other after the swap.
 """
@@ -23,6 +23,7 @@ from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, TrackingState
+from tests.conftest import OnnxExport
 from tests.helpers import shared_path
 
 CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 5}}
@@ -48,10 +49,8 @@ def make_torch(family: str) -> Callable[[], TorchBackend]:
 
 
 @pytest.fixture(scope="module")
-def make_onnx(family: str, request: pytest.FixtureRequest) -> Callable[[], OnnxBackend]:
-    folder: Path = request.getfixturevalue(
-        "golden_onnx_dir" if family == "pi3" else "golden_da3_onnx_dir"
-    )
+def make_onnx(family: str, onnx_exports: Callable[[str], OnnxExport]) -> Callable[[], OnnxBackend]:
+    folder = onnx_exports(family).folder  # the session's export of the family
     return lambda: OnnxBackend(folder, threads=1)
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import cast
 
 import torch
 from torch import nn
@@ -33,19 +32,20 @@ from torch import nn
 from kvtracker_sdk.errors import ImageShapeError
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy, select_reference_view
-from kvtracker_sdk.models.layers.attention import (
-    CacheBuffers,
-    check_cache_buffers,
-    keyframe_query_mask,
+from kvtracker_sdk.models.layers.alternating import (
+    CacheTrackingStep,
+    FullStep,
+    GlobalLayout,
+    GlobalStep,
+    KVRecordingStep,
+    run_alternating,
 )
-from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
+from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 
 __all__ = ["BackboneOutput", "DA3Backbone", "DA3ViT", "global_positions"]
 
-# (ordinal among global blocks, block, tokens [B, N*T, C]) -> tokens [B, N*T, C]
-GlobalStep = Callable[[int, Block, torch.Tensor], torch.Tensor]
 # input of block alt_start - 1 [B, N, T, C] -> (camera tokens [B, N, C], reference view [B] or None)
 CameraChoice = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]
 
@@ -108,6 +108,7 @@ class DA3Backbone(nn.Module):
         vit = config.backbone
         self.alt_start = vit.alt_start
         self.out_layers = vit.out_layers
+        self.layout = GlobalLayout(vit.global_block_indices, vit.num_heads, vit.head_dim)
         self.num_heads = vit.num_heads
         self.head_dim = vit.head_dim
         self.global_block_indices = vit.global_block_indices
@@ -133,12 +134,7 @@ class DA3Backbone(nn.Module):
             return self.learned_camera_tokens(reference, views), reference
 
         rope = self.global_rope(tokens).repeat(views)
-        return self._run(
-            tokens,
-            grid,
-            choose,
-            lambda _, block, x: block(x, rope=rope, attn_mask=global_attn_mask),
-        )
+        return self._run(tokens, grid, choose, FullStep(rope, global_attn_mask))
 
     def forward_map(
         self, images: torch.Tensor
@@ -166,21 +162,19 @@ class DA3Backbone(nn.Module):
                 f"tracking expects views [F, 3, H, W], got shape {tuple(images.shape)}"
             )
         tokens, grid = self.embed_views(images.unsqueeze(0))  # one sequence of F views
-        views, length = tokens.shape[1], tokens.shape[2]
-        past = cache.length
-        cache.ensure_capacity(past + views * length)
-        self.check_cache(cache, dtype=tokens.dtype, device=tokens.device)
-        mask = None
-        if views > 1:
-            mask = keyframe_query_mask(past, views, length, device=tokens.device)[past:]
-        rope = self.global_rope(tokens).repeat(views)
+        views = tokens.shape[1]
+        step = CacheTrackingStep(
+            cache,
+            self.layout,
+            frames=views,
+            tokens_per_frame=tokens.shape[2],
+            rope=self.global_rope(tokens),
+            dtype=tokens.dtype,
+            device=tokens.device,
+        )
 
         def choose(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
             return self.pretrained.camera_token[:, 1:].expand(1, views, -1), None
-
-        def step(ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
-            key_buffer, value_buffer = cache.buffers(ordinal)
-            return block.forward_track(x, key_buffer, value_buffer, past, rope=rope, attn_mask=mask)
 
         return self._run(tokens, grid, choose, step)
 
@@ -258,38 +252,21 @@ class DA3Backbone(nn.Module):
         exported graphs (``export_onnx/da3_graphs.py``) call this with their own step.
         ``early_out_layers``: the heads' inputs [B, N, T, 2C] of out layers before ``alt_start``.
         """
-        batch, views, length, dim = x.shape
         local_positions = grid_positions(*grid, num_prefix_tokens=1, device=x.device)
-        local_rope = self._rope(local_positions, x.dtype)
-        local_x = x  # the local half of an out layer is the last per-view block's output
         x = torch.cat((camera.unsqueeze(2), x[:, :, 1:]), dim=2)
-        taken = list(early_out_layers)
-        for index in range(self.alt_start, len(self.pretrained.blocks)):
-            block = cast(Block, self.pretrained.blocks[index])
-            if index % 2 == 1:  # global: [B, N*T, C]
-                ordinal = (index - self.alt_start) // 2
-                x = global_step(ordinal, block, x.reshape(batch, views * length, dim))
-                x = x.reshape(batch, views, length, dim)
-            else:  # per view: [B*N, T, C]
-                flat = x.reshape(batch * views, length, dim)
-                x = local_x = block(flat, rope=local_rope).reshape(x.shape)
-            if index in self.out_layers:
-                taken.append(torch.cat((local_x, x), dim=-1))
+        taken = list(early_out_layers) + run_alternating(
+            x,
+            self.pretrained.blocks,
+            start=self.alt_start,
+            local_rope=self._rope(local_positions, x.dtype),
+            global_step=global_step,
+            taps=self.out_layers,
+        )
+        dim = x.shape[-1]
         norm = self.pretrained.norm
         features = [
             torch.cat((out[..., :dim], norm(out[..., dim:])), dim=-1)[:, :, 1:] for out in taken
         ]
         return BackboneOutput(
             features=features, camera_tokens=taken[-1][:, :, 0], reference_view=None
-        )
-
-    def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
-        """Raise ``CacheError`` unless every global layer has buffers of the right shape and dtype."""
-        check_cache_buffers(
-            cache,
-            block_indices=self.global_block_indices,
-            num_heads=self.num_heads,
-            head_dim=self.head_dim,
-            dtype=dtype,
-            device=device,
         )

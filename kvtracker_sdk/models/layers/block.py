@@ -1,8 +1,8 @@
 """Pre-norm transformer block: ``x + ls1(attn(norm1 x))`` then ``x + ls2(mlp(norm2 x))``.
 
 The same block serves the DINOv2 encoder (LayerScale, no qk-norm), Pi3's decoder (LayerScale,
-qk-norm, RoPE2D), Pi3's head decoders (neither LayerScale nor qk-norm) and DA3's backbone. Its three
-forwards mirror ``Attention``'s three uses (plain / map / track); everything but the attention is
+qk-norm, RoPE2D), Pi3's head decoders (neither LayerScale nor qk-norm) and DA3's backbone. Its
+forwards mirror ``Attention``'s uses (plain / map / track / past); everything but the attention is
 per token, so they share the rest of the computation.
 """
 
@@ -18,7 +18,7 @@ from kvtracker_sdk.models.layers.mlp import Mlp
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.layers.swiglu import SwiGLUFFN
 
-__all__ = ["FFN_LAYERS", "Block", "KVRecordingStep"]
+__all__ = ["FFN_LAYERS", "Block"]
 
 # feed-forward variants by name: GELU MLP (every model but ViT-g) and SwiGLU (DINOv2 ViT-g/14)
 FFN_LAYERS: dict[str, type[Mlp] | type[SwiGLUFFN]] = {"mlp": Mlp, "swiglu": SwiGLUFFN}
@@ -100,19 +100,16 @@ class Block(nn.Module):
         )
         return self._finish(x, attended)
 
-
-class KVRecordingStep:
-    """The global step of a mapping pass: ``Block.forward_map`` with one RoPE table, keeping
-    every global block's K/V in order (what a ``KVCache`` stores). Both families' mapping passes,
-    and the exported mapping graphs, run their global blocks through it."""
-
-    def __init__(self, rope: RopeTable | None) -> None:
-        self.rope = rope
-        self.keys: list[torch.Tensor] = []
-        self.values: list[torch.Tensor] = []
-
-    def __call__(self, ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
-        out, k, v = block.forward_map(x, rope=self.rope)
-        self.keys.append(k)
-        self.values.append(v)
-        return out
+    def forward_past(
+        self,
+        x: torch.Tensor,
+        past_key: torch.Tensor,
+        past_value: torch.Tensor,
+        past_length: torch.Tensor,
+        *,
+        rope: RopeTable | None = None,
+    ) -> torch.Tensor:
+        """[1, L, dim] attending over ``past[:, :, :past_length]`` plus itself, the past read from
+        tensors (the exported tracking graphs' form of ``forward_track``; see ``Attention``)."""
+        attended = self.attn.forward_past(self.norm1(x), past_key, past_value, past_length, rope=rope)
+        return self._finish(x, attended)

@@ -6,7 +6,8 @@ attend over all frames of a sequence (sequence [B, N*T], frame-major) — the on
 interact, and the layers whose K/V a KV cache stores. Every block uses qk-norm, LayerScale and the
 same per-frame RoPE2D positions (no frame index, so a cached key stays valid for any query).
 
-The three passes differ only in the global blocks:
+The loop and the global steps are ``models/layers/alternating.py``'s (shared with DA3's backbone
+and the exported graphs); the three passes differ only in the global step:
 
 - ``forward``: full attention (optionally under a boolean mask, e.g. ``keyframe_query_mask``);
 - ``forward_map``: full attention, also returning each global block's K/V [B, heads, N*T, head_dim];
@@ -17,25 +18,23 @@ The output handed to the heads is concat(second-to-last block out, last block ou
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import cast
-
 import torch
 from torch import nn
 
-from kvtracker_sdk.models.layers.attention import (
-    CacheBuffers,
-    check_cache_buffers,
-    keyframe_query_mask,
+from kvtracker_sdk.models.layers.alternating import (
+    CacheTrackingStep,
+    FullStep,
+    GlobalLayout,
+    GlobalStep,
+    KVRecordingStep,
+    run_alternating,
 )
-from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
+from kvtracker_sdk.models.layers.attention import CacheBuffers
+from kvtracker_sdk.models.layers.block import Block
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.pi3.config import Pi3DecoderConfig
 
 __all__ = ["Pi3Decoder"]
-
-# (ordinal among global blocks, block, tokens [B, N*T, dim]) -> tokens [B, N*T, dim]
-GlobalStep = Callable[[int, Block, torch.Tensor], torch.Tensor]
 
 
 class Pi3Decoder(nn.ModuleList):
@@ -52,24 +51,18 @@ class Pi3Decoder(nn.ModuleList):
             )
             for _ in range(config.depth)
         )
+        self.layout = GlobalLayout(config.global_block_indices, config.num_heads, config.head_dim)
         self.num_heads = config.num_heads
         self.head_dim = config.head_dim
         self.global_block_indices = config.global_block_indices
 
-    def _run(self, tokens: torch.Tensor, rope: RopeTable, global_step: GlobalStep) -> torch.Tensor:
-        batch, frames, length, dim = tokens.shape
-        x = tokens
-        last_two = []
-        for index, block in enumerate(self):
-            if index % 2 == 0:  # frame attention: [B*N, T, dim]
-                x = block(x.reshape(batch * frames, length, dim), rope=rope)
-            else:  # global attention: [B, N*T, dim]
-                x = global_step(
-                    index // 2, cast(Block, block), x.reshape(batch, frames * length, dim)
-                )
-            if index >= len(self) - 2:
-                last_two.append(x.reshape(batch, frames, length, dim))
-        return torch.cat(last_two, dim=-1)
+    def run(self, tokens: torch.Tensor, rope: RopeTable, global_step: GlobalStep) -> torch.Tensor:
+        """[B, N, T, dim] -> [B, N, T, 2*dim] with ``global_step`` in the global blocks (the
+        exported graphs call this with their own step). ``rope``: one frame's table."""
+        (hidden,) = run_alternating(
+            tokens, self, start=0, local_rope=rope, global_step=global_step, taps={len(self) - 1}
+        )
+        return hidden
 
     def forward(
         self,
@@ -82,17 +75,14 @@ class Pi3Decoder(nn.ModuleList):
 
         ``global_attn_mask`` bool [N*T, N*T] (True = may attend) applies to the global blocks.
         """
-        global_rope = rope.repeat(tokens.shape[1])
-        return self._run(
-            tokens, rope, lambda _, block, x: block(x, rope=global_rope, attn_mask=global_attn_mask)
-        )
+        return self.run(tokens, rope, FullStep(rope.repeat(tokens.shape[1]), global_attn_mask))
 
     def forward_map(
         self, tokens: torch.Tensor, rope: RopeTable
     ) -> tuple[torch.Tensor, list[torch.Tensor], list[torch.Tensor]]:
         """``forward`` plus per global block K (after k_norm and RoPE) and V, [B, heads, N*T, head_dim]."""
         step = KVRecordingStep(rope.repeat(tokens.shape[1]))
-        return self._run(tokens, rope, step), step.keys, step.values
+        return self.run(tokens, rope, step), step.keys, step.values
 
     def forward_track(
         self, tokens: torch.Tensor, rope: RopeTable, cache: CacheBuffers
@@ -103,32 +93,13 @@ class Pi3Decoder(nn.ModuleList):
         with a block mask when F > 1). The frames' K/V go to the cache's scratch region; the
         cached part is only read.
         """
-        frames, length = tokens.shape[1], tokens.shape[2]
-        past = cache.length
-        self.check_cache(cache, dtype=tokens.dtype, device=tokens.device)  # before touching it
-        cache.ensure_capacity(past + frames * length)
-        mask = None
-        if frames > 1:
-            mask = keyframe_query_mask(
-                past, frames, length, queries_only=True, device=tokens.device
-            )
-        global_rope = rope.repeat(frames)
-
-        def step(ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
-            key_buffer, value_buffer = cache.buffers(ordinal)
-            return block.forward_track(
-                x, key_buffer, value_buffer, past, rope=global_rope, attn_mask=mask
-            )
-
-        return self._run(tokens, rope, step)
-
-    def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
-        """Raise ``CacheError`` unless every global layer has buffers of the right shape and dtype."""
-        check_cache_buffers(
+        step = CacheTrackingStep(
             cache,
-            block_indices=self.global_block_indices,
-            num_heads=self.num_heads,
-            head_dim=self.head_dim,
-            dtype=dtype,
-            device=device,
+            self.layout,
+            frames=tokens.shape[1],
+            tokens_per_frame=tokens.shape[2],
+            rope=rope,
+            dtype=tokens.dtype,
+            device=tokens.device,
         )
+        return self.run(tokens, rope, step)
