@@ -41,7 +41,6 @@ from torch import nn
 
 from benchmarks.shared_cpu_timing import best, measure_rounds, new_samples, wait_for_quiet
 from benchmarks.tracking_vs_recompute import DTYPES, PRESETS
-from kvtracker_sdk.backends.torch_families import family_adapter
 from kvtracker_sdk.cache import CacheLayout, KVCache
 from kvtracker_sdk.models.da3 import (
     DA3BackboneConfig,
@@ -51,6 +50,7 @@ from kvtracker_sdk.models.da3 import (
     DepthAnything3,
 )
 from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
+from kvtracker_sdk.models.registry import family_of
 from kvtracker_sdk.types import HeadSet
 
 RESULTS = Path(__file__).parent / "results"
@@ -103,7 +103,7 @@ def time_group(
 ) -> list[dict[str, Any]]:
     """One row per N: the tracking step against N random keyframes, camera head only, plus the
     tracker's default heads at ``--headline-keyframes``."""
-    layout, size = family_adapter(model).layout, args.size
+    layout, size = family_of(model).cache_layout(model), args.size
     tokens = model.tokens_per_frame(size, size)
     caches = {n: random_cache(layout, model.compute_dtype, n, tokens) for n in keyframes}
     query = torch.rand(1, 3, size, size, generator=torch.Generator().manual_seed(0))
@@ -136,7 +136,7 @@ def time_mapping(
     measure_rounds(
         [(samples, mapping)], allowed, repeats=args.map_repeats, warmup=0, **_limits(args)
     )
-    layout, tokens = family_adapter(model).layout, last[0].tokens_per_frame
+    layout, tokens = family_of(model).cache_layout(model), last[0].tokens_per_frame
     real = KVCache.from_layers(last[0].keys, last[0].values, layout=layout,
                                tokens_per_frame=tokens, keyframe_ids=range(n))  # fmt: skip
     fake = random_cache(layout, model.compute_dtype, n, tokens)
@@ -214,7 +214,7 @@ def run_group(
     cpus = os.cpu_count() or 1
     allowed = max(0, cpus - threads) + args.max_others
     tokens = model.tokens_per_frame(args.size, args.size)
-    layout = family_adapter(model).layout
+    layout = family_of(model).cache_layout(model)
     group: dict[str, Any] = {
         "model": name, "family": family, "licence": MODELS[name][1], "dtype": dtype,
         "threads": threads, "params": sum(p.numel() for p in model.parameters()),

@@ -46,10 +46,9 @@ from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_manifest import FAMILY_GRAPHS, read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner
 from kvtracker_sdk.backends.torch_backend import TorchBackend
-from kvtracker_sdk.backends.torch_families import family_adapter
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx import export_model
-from kvtracker_sdk.models.registry import load_model
+from kvtracker_sdk.models.registry import family_of, load_model
 
 RESULTS = Path(__file__).parent / "results"
 DA3_CONFIGS = sorted(name for name in model_families.MODELS if name.startswith("da3-"))
@@ -140,7 +139,7 @@ def bench_config(
         model = model_families.build_model(name, torch.float32)
     configs[name] = model.config.model_dump(mode="json")  # type: ignore[operator]
     torch_backend = TorchBackend(model, model_name=name)  # type: ignore[arg-type]
-    layout = family_adapter(model).layout  # type: ignore[arg-type]
+    layout = family_of(model).cache_layout(model)  # type: ignore[arg-type]
     folder = ensure_export(torch_backend, model, args.onnx_dir / name)
     int8 = ensure_int8(folder, args.threads) if args.int8 else None
     onnx_backend = OnnxBackend(folder, threads=args.threads)

@@ -31,12 +31,12 @@ import torch
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
-from kvtracker_sdk.backends.onnx_families import HeadOutputs
 from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, providers_for
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import ImageShapeError, ModelError, StateError
+from kvtracker_sdk.models.family import FrameOutputs
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["OnnxBackend"]
@@ -157,7 +157,7 @@ class OnnxBackend:
         return np.ascontiguousarray(frames.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
 
     @staticmethod
-    def _track_result(outputs: HeadOutputs, timings: dict[str, float]) -> TrackResult:
+    def _track_result(outputs: FrameOutputs, timings: dict[str, float]) -> TrackResult:
         confidence_map = None if outputs.confidence is None else outputs.confidence[0]
         return TrackResult(
             pose=outputs.poses[0],

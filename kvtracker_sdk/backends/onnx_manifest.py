@@ -52,6 +52,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.errors import ModelError
+from kvtracker_sdk.models.graph_io import (
+    TensorSpec,
+    past_key_name,
+    past_value_name,
+    present_key_name,
+    present_value_name,
+)
+from kvtracker_sdk.models.registry import FAMILIES
 
 __all__ = [
     "FORMAT_NAME",
@@ -73,39 +81,14 @@ FORMAT_NAME = "kvtracker-onnx"
 FORMAT_VERSION = 2  # bump on any change an older reader would misread (2: file sha256)
 MANIFEST_NAME = "manifest.json"
 WEIGHTS_NAME = "weights.bin"
-# graphs of an export, per family (``manifest.family``), in the order they run
+# graphs of an export, per family (``manifest.family``), in the order they run: the family records'
 FAMILY_GRAPHS: dict[str, tuple[str, ...]] = {
-    "pi3": ("encoder", "decoder_map", "decoder_track", "head_camera", "head_conf", "head_points"),
-    "da3": ("encoder", "decoder_map", "decoder_track", "head_camera", "head_depth"),
+    name: family.graph_names for name, family in FAMILIES.items()
 }
-
-
-def past_key_name(layer: int) -> str:
-    return f"past_key_values.{layer}.key"
-
-
-def past_value_name(layer: int) -> str:
-    return f"past_key_values.{layer}.value"
-
-
-def present_key_name(layer: int) -> str:
-    return f"present.{layer}.key"
-
-
-def present_value_name(layer: int) -> str:
-    return f"present.{layer}.value"
 
 
 class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
-
-
-class TensorSpec(_Frozen):
-    """One graph input or output: dims are ints (fixed) or names (dynamic axes)."""
-
-    name: str
-    shape: tuple[int | str, ...]
-    dtype: str = "float32"
 
 
 class GraphSpec(_Frozen):
@@ -121,7 +104,7 @@ class OnnxManifest(_Frozen):
     format_version: int = FORMAT_VERSION
     sdk_version: str
     created_utc: str
-    family: str  # "pi3" or "da3" (a key of FAMILY_GRAPHS)
+    family: str  # "pi3", "da3", ...: a key of ``models.registry.FAMILIES``
     model: str  # "pi3", "da3-small", ... for released architectures, "<family>-custom" otherwise
     config: dict[str, Any]  # the architecture (Pi3Config / DA3Config .model_dump())
     config_hash: str

@@ -4,7 +4,8 @@
 SDK's conventions. It knows nothing of ``KVCache`` or uint8 frames (that is ``OnnxBackend``'s
 job) so that the exporter can run it on its check inputs too. It serves every family: the
 decoders' outputs other than K/V are the heads' inputs, fed to the head graphs by name, and the
-family's ``OnnxHeads`` (``onnx_families.py``) picks the head graphs and converts their outputs.
+family's record (``models.registry.family_named(manifest.family)``) picks the head graphs and
+converts their outputs.
 
 Speed choices (``session_options``): full graph optimisation (``ORT_ENABLE_ALL``: fusions of
 LayerNorm, GELU, MatMul+Add...), the CPU memory arena and memory patterns (buffers are reused
@@ -23,7 +24,6 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.onnx_families import HeadOutputs, onnx_heads
 from kvtracker_sdk.backends.onnx_manifest import (
     OnnxManifest,
     past_key_name,
@@ -32,6 +32,8 @@ from kvtracker_sdk.backends.onnx_manifest import (
     present_value_name,
 )
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
+from kvtracker_sdk.models.family import FrameOutputs
+from kvtracker_sdk.models.registry import family_named
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["OnnxRunner", "import_onnxruntime", "providers_for", "session_options"]
@@ -110,7 +112,7 @@ class OnnxRunner:
         folder = Path(folder)
         self.manifest = manifest
         self.providers = providers_for("cpu", providers)
-        self._heads = onnx_heads(manifest.family)
+        self._family = family_named(manifest.family)
         options = session_options(threads)
         try:
             self._sessions = {
@@ -145,7 +147,7 @@ class OnnxRunner:
         """float32 [F, 3, H, W] in [0, 1] -> patch tokens [F, h, w, dim]."""
         return self._run("encoder", {"images": images})["patch_tokens"]
 
-    def map(self, images: np.ndarray) -> tuple[HeadOutputs, list[np.ndarray], list[np.ndarray]]:
+    def map(self, images: np.ndarray) -> tuple[FrameOutputs, list[np.ndarray], list[np.ndarray]]:
         """Full attention over keyframes float32 [N, 3, H, W] in [0, 1]: all heads, and per
         cached layer K and V [1, heads, N*T, head_dim]."""
         decoded = self._run("decoder_map", {"patch_tokens": self.encode(images)})
@@ -159,7 +161,7 @@ class OnnxRunner:
         past: Sequence[tuple[np.ndarray, np.ndarray]],
         past_length: int,
         heads: HeadSet,
-    ) -> HeadOutputs:
+    ) -> FrameOutputs:
         """One frame float32 [1, 3, H, W] against a cache.
 
         ``past[i]`` = (K, V) of cached layer ``i``, [1, heads, capacity, head_dim] float32,
@@ -177,11 +179,11 @@ class OnnxRunner:
 
     def heads(
         self, decoded: dict[str, np.ndarray], heads: HeadSet, image_size: Sequence[int]
-    ) -> HeadOutputs:
+    ) -> FrameOutputs:
         """Run the head graphs ``heads`` needs on the decoder's outputs (fed by name), converted
         to the SDK's conventions for images of ``image_size`` (H, W)."""
         outputs: dict[str, np.ndarray] = {}
-        for graph in self._heads.graphs(heads):
+        for graph in self._family.head_graphs(heads):
             outputs.update(self._run(graph, {name: decoded[name] for name in self._inputs[graph]}))
         height, width = image_size
-        return self._heads.convert(outputs, heads, (int(height), int(width)))
+        return self._family.convert_heads(outputs, heads, (int(height), int(width)))

@@ -8,9 +8,10 @@ Families: ``pi3`` (π³) and ``da3`` (Depth Anything 3; ``da3-small``, ``da3-bas
 ``from_pretrained`` takes a model name (``models.registry.MODEL_NAMES``), a ``.safetensors``
 file, a folder or a hub repo id, and picks the family from the checkpoint's tensor names;
 ``info.family`` / ``info.model`` report it, and caches never cross families (the fingerprint
-hashes the family). Each family's outputs are converted to the SDK's conventions by its adapter
-(``backends/torch_families.py``): ``T_world_cam`` camera-to-world float64, confidence in [0, 1]
-(DA3: ``1 - 1/depth_conf``), local points in the camera frame (DA3: unprojected depth).
+hashes the family). The passes and the conversion of each family's outputs to the SDK's
+conventions are the family record's (``models/<family>/family.py``, looked up in
+``models.registry``): ``T_world_cam`` camera-to-world float64, confidence in [0, 1] (DA3:
+``1 - 1/depth_conf``), local points in the camera frame (DA3: unprojected depth).
 
 Images arrive at the model resolution (``kvtracker_sdk/preprocess``): uint8 RGB, H and W multiples
 of 14. ``map`` runs the full model on the keyframes and returns their poses, confidence and local
@@ -27,13 +28,14 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any, cast
 
 import numpy as np
 import torch
+from torch import nn
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
-from kvtracker_sdk.backends.torch_families import FrameOutputs, TorchFamily, family_adapter
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import (
     BackendError,
@@ -42,10 +44,8 @@ from kvtracker_sdk.errors import (
     StateError,
 )
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
-from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
-from kvtracker_sdk.models.registry import load_model
-from kvtracker_sdk.models.registry import model_name as architecture_name
+from kvtracker_sdk.models.family import FrameOutputs, Network
+from kvtracker_sdk.models.registry import family_of, load_model
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["TorchBackend"]
@@ -102,7 +102,7 @@ class TorchBackend:
 
     def __init__(
         self,
-        model: Pi3 | DepthAnything3,
+        model: nn.Module,
         *,
         dtype: torch.dtype | str = torch.float32,
         device: torch.device | str = "cpu",
@@ -110,27 +110,27 @@ class TorchBackend:
         weights_fingerprint: str | None = None,
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
-        family = family_adapter(model)  # ModelError for other networks, before any cast
+        family = family_of(model)  # ModelError for other networks, before any cast
+        network = cast(Network, model)
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
         target = _available_device(device)
         try:
-            self._model: Pi3 | DepthAnything3 | None = (
-                model.set_precision(compute_dtype).to(target).eval()
-            )
+            network.set_precision(compute_dtype)
+            self._model: nn.Module | None = model.to(target).eval()
         except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
             raise BackendError(f"cannot move the model to {target}: {exc}") from exc
-        self._family: TorchFamily | None = family
+        self._family = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
         self._info = BackendInfo(
             backend="torch",
-            model=model_name or architecture_name(model),
-            family=family.family,
-            config_hash=model.config.config_hash,
+            model=model_name or family.model_name(model),
+            family=family.name,
+            config_hash=network.config.config_hash,
             weights_fingerprint=fingerprint,
-            patch_size=model.config.patch_size,
-            extra_tokens_per_frame=family.extra_tokens_per_frame,
-            layout=family.layout,
+            patch_size=network.config.patch_size,
+            extra_tokens_per_frame=family.extra_tokens_per_frame(model),
+            layout=family.cache_layout(model),
             dtype=str(compute_dtype).removeprefix("torch."),
             device=str(self._device),
             accelerations=_accelerations(self._device),
@@ -141,7 +141,7 @@ class TorchBackend:
         cls,
         weights: str | os.PathLike[str],
         *,
-        config: Pi3Config | DA3Config | None = None,
+        config: Any | None = None,
         dtype: torch.dtype | str = torch.float32,
         device: torch.device | str = "cpu",
         model_name: str | None = None,
@@ -152,7 +152,7 @@ class TorchBackend:
         _available_device(device)  # before the minutes a large checkpoint may take to load
         loaded = load_model(weights, config=config)
         return cls(
-            loaded.model,  # type: ignore[arg-type]
+            loaded.model,
             dtype=dtype,
             device=device,
             model_name=model_name or loaded.name,
@@ -166,12 +166,12 @@ class TorchBackend:
 
     def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
-        family = self._live_family()
+        model = self._live_model()
         frames = self._to_tensor(images)
         check_masks(masks, images)
         start = time.perf_counter()
         with torch.no_grad():
-            mapped = family.map(frames)
+            mapped = self._family.map(model, frames)
         outputs = mapped.frames
         return MapResult.of_pass(
             outputs.poses,
@@ -198,12 +198,12 @@ class TorchBackend:
         self, images: np.ndarray, cache: KVCache, *, heads: HeadSet = HeadSet.CONFIDENCE
     ) -> list[TrackResult]:
         """Track independent frames uint8 [B, H, W, 3] against ``cache`` in one pass."""
-        family = self._live_family()
+        model = self._live_model()
         frames = self._to_tensor(images)
         check_cache(cache, self._info, frames.shape[-2], frames.shape[-1])
         start = time.perf_counter()
         with cache.lock, torch.no_grad():
-            output = family.track(frames, cache, heads)
+            output = self._family.track(model, frames, cache, heads)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         timings = {"track": elapsed_ms / frames.shape[0], "track_batch": elapsed_ms}
         return [self._track_result(output, index, timings) for index in range(frames.shape[0])]
@@ -211,18 +211,12 @@ class TorchBackend:
     def close(self) -> None:
         """Drop the model (frees its memory); later calls raise ``StateError``. Idempotent."""
         self._model = None
-        self._family = None
 
     # ------------------------------------------------------------------ helpers
-    def _live_model(self) -> Pi3 | DepthAnything3:
+    def _live_model(self) -> nn.Module:
         if self._model is None:
             raise StateError("this TorchBackend is closed")
         return self._model
-
-    def _live_family(self) -> TorchFamily:
-        if self._family is None:
-            raise StateError("this TorchBackend is closed")
-        return self._family
 
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""

@@ -19,62 +19,14 @@ rebuilt on a worker thread) are fully independent.
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from numbers import Integral
-from typing import Any
+from collections.abc import Sequence
 
 import torch
 
 from kvtracker_sdk.errors import CacheError
+from kvtracker_sdk.models.layers.cache_layout import CacheLayout
 
 __all__ = ["CacheLayout", "KVCache"]
-
-
-def _is_count(value: object, minimum: int) -> bool:
-    return isinstance(value, Integral) and not isinstance(value, bool) and int(value) >= minimum
-
-
-@dataclass(frozen=True)
-class CacheLayout:
-    """Shape of a model's cache: which blocks are global, heads and head_dim per layer."""
-
-    block_indices: tuple[int, ...]  # decoder/backbone block index of each cached global layer
-    num_heads: int
-    head_dim: int
-
-    def __post_init__(self) -> None:
-        # checked here so that a bad layout is a CacheError, not torch's RuntimeError later
-        sizes = (self.num_heads, self.head_dim)
-        if not all(_is_count(v, 1) for v in sizes):
-            raise CacheError(f"num_heads and head_dim must be integers >= 1, got {sizes}")
-        indices = tuple(self.block_indices)
-        if not all(_is_count(i, 0) for i in indices):
-            raise CacheError(f"block indices must be integers >= 0, got {indices}")
-
-    @property
-    def num_layers(self) -> int:
-        return len(self.block_indices)
-
-    def bytes_per_token(self, dtype: torch.dtype) -> int:
-        """K and V of one token in every layer."""
-        itemsize = torch.empty((), dtype=dtype).element_size()
-        return 2 * self.num_layers * self.num_heads * self.head_dim * itemsize
-
-    def to_dict(self) -> dict[str, object]:
-        return {
-            "block_indices": list(self.block_indices),
-            "num_heads": self.num_heads,
-            "head_dim": self.head_dim,
-        }
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> CacheLayout:
-        return cls(
-            block_indices=tuple(int(i) for i in data["block_indices"]),
-            num_heads=int(data["num_heads"]),
-            head_dim=int(data["head_dim"]),
-        )
 
 
 class KVCache:

@@ -1,17 +1,18 @@
-"""Export Pi3 or Depth Anything 3 to a folder of ONNX graphs + ``manifest.json`` that
-``OnnxBackend`` serves.
+"""Export a network of any model family (Pi3, Depth Anything 3) to a folder of ONNX graphs +
+``manifest.json`` that ``OnnxBackend`` serves.
 
     from kvtracker_sdk.export_onnx import export_onnx
     manifest = export_onnx("pi3-onnx/", weights="model.safetensors")      # or a hub id / folder
     manifest = export_onnx("da3-onnx/", weights="da3-small")              # a model name
     manifest = export_onnx("tiny-onnx/", config=Pi3Config(...), seed=0)   # random weights
 
-Steps: every graph of the family (``pi3_specs.py`` / ``da3_specs.py``) goes through the dynamo
+Steps: every graph of the family (its record's ``graphs``, ``models/<family>/graph_specs.py``) goes
+through the dynamo
 exporter (``torch.onnx.export(dynamo=True)``) with dynamic frames, patch grid and cache length;
 an export that fixed one of those sizes is refused. The weights move to one shared
 ``weights.bin`` (``external_data.py``); then ONNX Runtime runs a mapping pass and a tracking
 pass over the new graphs and the outputs, in the SDK's conventions, are compared with
-``TorchBackend``'s (``backends/torch_families.py``) on the same inputs — the tracking cache's
+``TorchBackend``'s (the family record's ``map`` / ``track``) on the same inputs — the tracking cache's
 scratch holds NaN, so a graph reading past the cached tokens fails. The largest differences go
 to the manifest (``check``); an export that differs by more than 1e-3 of the outputs'
 magnitude is refused.
@@ -38,21 +39,19 @@ from typing import Any, cast
 
 import numpy as np
 import torch
+from torch import nn
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.onnx_integrity import file_digests
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME, GraphSpec, OnnxManifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner, import_onnxruntime
-from kvtracker_sdk.backends.torch_families import family_adapter
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError, ModelError
-from kvtracker_sdk.export_onnx.families import example_inputs, graphs_of
 from kvtracker_sdk.export_onnx.graph_def import GraphDef, dynamic_shapes
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
-from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
-from kvtracker_sdk.models.registry import load_model, model_name
+from kvtracker_sdk.models.family import Network
+from kvtracker_sdk.models.registry import family_of, family_of_config, load_model
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["DEFAULT_CHECK_SIZE", "DEFAULT_OPSET", "export_model", "export_onnx"]
@@ -68,7 +67,7 @@ def export_onnx(
     out_dir: str | os.PathLike[str],
     *,
     weights: str | os.PathLike[str] | None = None,
-    config: Pi3Config | DA3Config | None = None,
+    config: Any | None = None,
     seed: int = 0,
     check_size: tuple[int, int] = DEFAULT_CHECK_SIZE,
     opset: int = DEFAULT_OPSET,
@@ -80,12 +79,13 @@ def export_onnx(
     _check_destination(Path(out_dir), overwrite)  # before minutes of loading and exporting
     if weights is not None:
         loaded = load_model(weights, config=config)
-        model = cast(Pi3 | DepthAnything3, loaded.model)  # what load_model returns
+        model = loaded.model
         fingerprint, name = loaded.fingerprint, loaded.name
     elif config is not None:
         torch.manual_seed(seed)
-        model = (Pi3(config) if isinstance(config, Pi3Config) else DepthAnything3(config)).eval()
-        fingerprint, name = hash_weights(model.state_dict()), model_name(model)
+        family = family_of_config(config)  # ModelError for anything but a family's config
+        model = family.build(config)
+        fingerprint, name = hash_weights(model.state_dict()), family.model_name(model)
     else:
         raise ConfigError("export_onnx needs weights (a checkpoint) or a config (random weights)")
     return export_model(
@@ -100,7 +100,7 @@ def export_onnx(
 
 
 def export_model(
-    model: Pi3 | DepthAnything3,
+    model: nn.Module,
     out_dir: str | os.PathLike[str],
     *,
     weights_fingerprint: str | None = None,
@@ -109,7 +109,7 @@ def export_model(
     opset: int = DEFAULT_OPSET,
     overwrite: bool = False,
 ) -> OnnxManifest:
-    """Export an fp32 ``Pi3`` or ``DepthAnything3`` (weights as loaded; not modified) to
+    """Export an fp32 network of a model family (weights as loaded; not modified) to
     ``out_dir``; see the module doc.
 
     ``weights_fingerprint`` defaults to the hash of ``model.state_dict()`` and ``name`` to the
@@ -118,10 +118,12 @@ def export_model(
     """
     _require_exporter()
     destination = Path(out_dir)
-    graphs = graphs_of(model)  # ModelError / ConfigError for what cannot be exported
-    if model.compute_dtype != torch.float32:
-        raise ConfigError(f"export an fp32 model, got {model.compute_dtype}")
-    patch = model.config.patch_size
+    family = family_of(model)  # ModelError for networks of no family
+    graphs = family.graphs(model)  # ConfigError for what cannot be exported
+    network = cast(Network, model)
+    if network.compute_dtype != torch.float32:
+        raise ConfigError(f"export an fp32 model, got {network.compute_dtype}")
+    patch = network.config.patch_size
     if any(side <= patch or side % patch for side in check_size):
         raise ConfigError(f"check_size {check_size} must be multiples of {patch}, above {patch}")
     _check_destination(destination, overwrite)
@@ -134,7 +136,7 @@ def export_model(
             graphs,
             staging,
             weights_fingerprint=weights_fingerprint or hash_weights(model.state_dict()),
-            name=name or model_name(model),
+            name=name or family.model_name(model),
             check_size=check_size,
             opset=opset,
         )
@@ -162,7 +164,7 @@ def _require_exporter() -> None:
 
 
 def _export_into(
-    model: Pi3 | DepthAnything3,
+    model: nn.Module,
     graphs: list[GraphDef],
     folder: Path,
     *,
@@ -175,9 +177,9 @@ def _export_into(
 
     from kvtracker_sdk.export_onnx.external_data import SharedWeightsWriter
 
-    config = model.config
-    family = family_adapter(model)
-    examples = example_inputs(model, check_size)
+    config = cast(Network, model).config
+    family = family_of(model)
+    examples = family.example_inputs(model, check_size)
     specs: dict[str, GraphSpec] = {}
     with SharedWeightsWriter(folder, WEIGHTS_NAME) as weights:
         for graph in graphs:
@@ -195,15 +197,15 @@ def _export_into(
     provisional = OnnxManifest(
         sdk_version=__version__,
         created_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        family=family.family,
+        family=family.name,
         model=name,
         config=config.model_dump(),
         config_hash=config.config_hash,
         weights_fingerprint=weights_fingerprint,
         fingerprint="",
         patch_size=config.patch_size,
-        extra_tokens_per_frame=family.extra_tokens_per_frame,
-        layout=family.layout.to_dict(),
+        extra_tokens_per_frame=family.extra_tokens_per_frame(model),
+        layout=family.cache_layout(model).to_dict(),
         opset=opset,
         check_resolution=check_size,
         weights_bytes=weights_bytes,
@@ -219,7 +221,7 @@ def _export_into(
 
 
 def _export_graph(
-    model: Pi3 | DepthAnything3, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
+    model: nn.Module, graph: GraphDef, args: tuple[Any, ...], opset: int) -> Any:
     """One graph through the dynamo exporter; its dims renamed after ``graph``'s specs.
 
     ``ModelError`` if the exporter fixed a dim the specs declare dynamic (a Python computation
@@ -233,7 +235,7 @@ def _export_graph(
             graph.module(model).eval(),
             args,
             dynamo=True,
-            dynamic_shapes=dynamic_shapes(graph, model.config.patch_size),
+            dynamic_shapes=dynamic_shapes(graph, cast(Network, model).config.patch_size),
             input_names=[spec.name for spec in graph.inputs],
             output_names=[spec.name for spec in graph.outputs],
             opset_version=opset,
@@ -288,14 +290,14 @@ def _quiet_exporter() -> Iterator[None]:
 
 @torch.no_grad()
 def _check(
-    model: Pi3 | DepthAnything3, folder: Path, manifest: OnnxManifest, size: tuple[int, int]
+    model: nn.Module, folder: Path, manifest: OnnxManifest, size: tuple[int, int]
 ) -> dict[str, float]:
     """Max |ORT - PyTorch| per output of a mapping pass (2 keyframes) and a tracking pass, in
     the SDK's conventions (what the two backends return)."""
-    family = family_adapter(model)
+    family = family_of(model)
     generator = torch.Generator().manual_seed(1)
     images = torch.rand(3, 3, *size, generator=generator)
-    mapped = family.map(images[:2])
+    mapped = family.map(model, images[:2])
     cache = KVCache.from_layers(
         mapped.keys,
         mapped.values,
@@ -304,7 +306,7 @@ def _check(
         keyframe_ids=range(2),
     )
     _fill_scratch(cache, float("nan"))
-    tracked = family.track(images[2:], cache, HeadSet.ALL)
+    tracked = family.track(model, images[2:], cache, HeadSet.ALL)
     _fill_scratch(cache, float("nan"))  # the PyTorch pass wrote the query's K/V there
 
     runner = OnnxRunner(folder, manifest)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, cast
+from typing import Any
 
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_integrity import verify_files
@@ -22,8 +22,6 @@ from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, read_manifest
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx.exporter import export_model
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.models.da3 import DepthAnything3
-from kvtracker_sdk.models.pi3 import Pi3
 from kvtracker_sdk.models.registry import load_model
 
 __all__ = ["default_cache_dir", "exported_folder", "onnx_backend"]
@@ -54,7 +52,7 @@ def exported_folder(
         _log.info("cached onnx export unusable", folder=str(folder), reason=str(exc)[:300])
     _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
     export_model(
-        cast(Pi3 | DepthAnything3, loaded.model),  # what load_model returns
+        loaded.model,
         folder,
         weights_fingerprint=loaded.fingerprint,
         name=loaded.name,

@@ -1,17 +1,13 @@
-"""Model families by name: which network a checkpoint holds, and loading it by name or file.
+"""The model families, by name: the one list of them, and the look-ups every layer uses.
 
-Two families share the KV-cache machinery (``models/layers``): ``pi3`` (π³, weights CC BY-NC)
-and ``da3`` (Depth Anything 3; Small/Base weights Apache-2.0). A checkpoint's family is read from
-its tensor names only (``safetensors`` headers, no tensor data):
-
-| family | marker keys |
-|---|---|
-| pi3 | ``register_token`` and ``decoder.0.*`` |
-| da3 | ``backbone.pretrained.camera_token`` (hub files: ``model.backbone.pretrained.camera_token``) |
+Each family is a folder ``models/<family>/`` with a record (``family.py``, a ``ModelFamily``;
+``models/family.py`` lists what a record provides). ``FAMILIES`` below holds one record per
+family; nothing else in the SDK names a family's classes. A checkpoint's family is read from its
+tensor names only (``safetensors`` headers, no tensor data), by asking each record.
 
 ``MODEL_NAMES`` maps the names users type to a family and the official hub repository:
 ``pi3``, ``da3-small``, ``da3-base``, ``da3-large``, ``da3-giant``. ``load_model`` accepts one
-of those names, or a file / folder / hub repo id of either family.
+of those names, or a file / folder / hub repo id of any family.
 """
 
 from __future__ import annotations
@@ -20,34 +16,46 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any
 
 from safetensors import SafetensorError, safe_open
 from torch import nn
 
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.models.checkpoint_utils import resolve_weights
-from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3, load_da3
-from kvtracker_sdk.models.da3.checkpoint import HUB_REPOS as DA3_HUB_REPOS
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config, load_pi3
+from kvtracker_sdk.models.da3.family import DA3Family
+from kvtracker_sdk.models.family import ModelFamily
+from kvtracker_sdk.models.pi3.family import Pi3Family
 
 __all__ = [
+    "FAMILIES",
     "MODEL_NAMES",
     "Family",
     "LoadedModel",
     "checkpoint_family",
+    "family_named",
+    "family_of",
+    "family_of_config",
     "family_of_keys",
     "load_model",
     "model_family",
     "model_name",
 ]
 
-Family = Literal["pi3", "da3"]
+Family = str  # a key of FAMILIES: "pi3", "da3"
+
+# one line per family
+FAMILIES: dict[str, ModelFamily] = {
+    family.name: family
+    for family in (
+        Pi3Family(),
+        DA3Family(),
+    )
+}
 
 # user-facing model name -> (family, official hub repository)
 MODEL_NAMES: dict[str, tuple[Family, str]] = {
-    "pi3": ("pi3", "yyfz233/Pi3"),
-    **{f"da3-{preset}": ("da3", repo) for preset, repo in DA3_HUB_REPOS.items()},
+    model: (family.name, repo) for family in FAMILIES.values() for model, repo in family.hub_repos.items()
 }
 
 
@@ -57,22 +65,47 @@ class LoadedModel:
 
     family: Family
     name: str  # "pi3", "da3-small", ... or "<family>-custom" for other architectures
-    model: nn.Module  # Pi3 or DepthAnything3
+    model: nn.Module  # the family's network
     fingerprint: str  # content hash of the (canonical) weights
     path: Path
 
 
+def family_named(name: str) -> ModelFamily:
+    """The record of family ``name`` (``ModelError`` names the known ones)."""
+    try:
+        return FAMILIES[name]
+    except KeyError:
+        raise ModelError(f"no model family {name!r}; this SDK has {sorted(FAMILIES)}") from None
+
+
+def family_of(model: nn.Module) -> ModelFamily:
+    """The record of a network's family; ``ModelError`` for networks of no family."""
+    for family in FAMILIES.values():
+        if isinstance(model, family.model_type):
+            return family
+    names = " nor a ".join(family.model_type.__name__ for family in FAMILIES.values())
+    raise ModelError(f"{type(model).__name__} is neither a {names} network")
+
+
+def family_of_config(config: Any) -> ModelFamily:
+    """The record whose configuration class ``config`` is; ``ModelError`` otherwise."""
+    for family in FAMILIES.values():
+        if isinstance(config, family.config_type):
+            return family
+    raise ModelError(f"{type(config).__name__} is no model family's configuration")
+
+
 def family_of_keys(keys: Iterable[str]) -> Family:
-    """The family whose checkpoints use these tensor names; ``ModelError`` if neither does."""
+    """The family whose checkpoints use these tensor names; ``ModelError`` if none does."""
     names = set(keys)
-    if names & {"backbone.pretrained.camera_token", "model.backbone.pretrained.camera_token"}:
-        return "da3"
-    if "register_token" in names and any(name.startswith("decoder.0.") for name in names):
-        return "pi3"
+    for family in FAMILIES.values():
+        if family.owns_checkpoint(names):
+            return family.name
     sample = ", ".join(sorted(names)[:5])
+    known = " or ".join(family.display_name for family in FAMILIES.values())
     raise ModelError(
-        f"not a Pi3 or Depth Anything 3 checkpoint (no register_token/decoder.* nor "
-        f"backbone.pretrained.camera_token among {len(names)} tensors; first: {sample})"
+        f"not a {known} checkpoint: no family recognises its {len(names)} tensors "
+        f"(first: {sample})"
     )
 
 
@@ -86,9 +119,7 @@ def checkpoint_family(path: str | os.PathLike[str]) -> Family:
     return family_of_keys(keys)
 
 
-def load_model(
-    weights: str | os.PathLike[str], *, config: Pi3Config | DA3Config | None = None
-) -> LoadedModel:
+def load_model(weights: str | os.PathLike[str], *, config: Any | None = None) -> LoadedModel:
     """Load a model by name (``MODEL_NAMES``) or from a file, folder or hub repo id of any family.
 
     A name that is also an existing path is read as the path. ``config`` (None: inferred from
@@ -98,30 +129,21 @@ def load_model(
     if text in MODEL_NAMES and not Path(text).exists():
         weights = MODEL_NAMES[text][1]
     path = resolve_weights(weights)
-    family = checkpoint_family(path)
-    if config is not None and not isinstance(config, Pi3Config if family == "pi3" else DA3Config):
-        raise ModelError(f"{path} holds a {family} checkpoint, got a {type(config).__name__}")
-    if family == "pi3":
-        pi3 = load_pi3(path, config=config if isinstance(config, Pi3Config) else None)
-        return LoadedModel("pi3", model_name(pi3.model), pi3.model, pi3.fingerprint, pi3.path)
-    da3 = load_da3(path, config=config if isinstance(config, DA3Config) else None)
-    return LoadedModel("da3", model_name(da3.model), da3.model, da3.fingerprint, da3.path)
+    family = FAMILIES[checkpoint_family(path)]
+    if config is not None and not isinstance(config, family.config_type):
+        raise ModelError(f"{path} holds a {family.name} checkpoint, got a {type(config).__name__}")
+    loaded = family.load(path, config)
+    return LoadedModel(
+        family.name, family.model_name(loaded.model), loaded.model, loaded.fingerprint, loaded.path
+    )
 
 
 def model_family(model: nn.Module) -> Family:
-    """The family of a network; ``ModelError`` for anything but ``Pi3`` / ``DepthAnything3``."""
-    if isinstance(model, Pi3):
-        return "pi3"
-    if isinstance(model, DepthAnything3):
-        return "da3"
-    raise ModelError(f"{type(model).__name__} is neither a Pi3 nor a DepthAnything3 network")
+    """The family name of a network; ``ModelError`` for networks of no family."""
+    return family_of(model).name
 
 
 def model_name(model: nn.Module) -> str:
     """The user-facing name of a network's architecture: ``pi3``, ``da3-small``, ... or
     ``<family>-custom`` for configurations that are not an official release."""
-    if isinstance(model, Pi3):
-        return "pi3" if model.config == Pi3Config.large() else "pi3-custom"
-    if isinstance(model, DepthAnything3):
-        return f"da3-{model.config.preset_name or 'custom'}"
-    raise ModelError(f"{type(model).__name__} is neither a Pi3 nor a DepthAnything3 network")
+    return family_of(model).model_name(model)

@@ -15,11 +15,12 @@ import torch
 from safetensors.torch import load_file
 from scipy.special import expit
 
-from kvtracker_sdk.backends.onnx_families import HeadOutputs, camera_poses
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner
 from kvtracker_sdk.cache.kv_cache import KVCache
+from kvtracker_sdk.models.family import FrameOutputs as HeadOutputs
 from kvtracker_sdk.models.pi3 import load_pi3
+from kvtracker_sdk.models.pi3.conventions import camera_poses
 from kvtracker_sdk.models.pi3.heads import rotation_from_matrix9
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import shared_path

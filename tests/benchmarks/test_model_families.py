@@ -14,7 +14,7 @@ from benchmarks.model_families import (
     random_cache,
     target_checks,
 )
-from kvtracker_sdk.backends.torch_families import family_adapter
+from kvtracker_sdk.models.registry import family_of
 
 SIZE = 56  # 4x4 patches: T = 1 + 16 tokens per DA3 frame, 5 + 16 per Pi3 frame
 
@@ -65,7 +65,7 @@ def test_main_writes_json_and_table(tmp_path: Path) -> None:
 
 def test_random_cache_matches_model_layout() -> None:
     model = build_model("da3-tiny", torch.bfloat16)
-    layout = family_adapter(model).layout
+    layout = family_of(model).cache_layout(model)
     cache = random_cache(layout, torch.bfloat16, 3, model.tokens_per_frame(SIZE, SIZE))
     assert cache.num_keyframes == 3 and cache.length == 3 * 17
     assert cache.dtype == torch.bfloat16 and cache.layout == layout

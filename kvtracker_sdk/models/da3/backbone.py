@@ -35,12 +35,12 @@ from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy, select_re
 from kvtracker_sdk.models.layers.alternating import (
     CacheTrackingStep,
     FullStep,
-    GlobalLayout,
     GlobalStep,
     KVRecordingStep,
     run_alternating,
 )
 from kvtracker_sdk.models.layers.attention import CacheBuffers
+from kvtracker_sdk.models.layers.cache_layout import CacheLayout
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 
@@ -108,7 +108,7 @@ class DA3Backbone(nn.Module):
         vit = config.backbone
         self.alt_start = vit.alt_start
         self.out_layers = vit.out_layers
-        self.layout = GlobalLayout(vit.global_block_indices, vit.num_heads, vit.head_dim)
+        self.layout = CacheLayout(vit.global_block_indices, vit.num_heads, vit.head_dim)
         self.num_heads = vit.num_heads
         self.head_dim = vit.head_dim
         self.global_block_indices = vit.global_block_indices

@@ -20,14 +20,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
-from kvtracker_sdk.models.da3.camera import quat_xyzw_to_matrix
+from kvtracker_sdk.models.da3.camera import decode_pose_encoding, quat_xyzw_to_matrix
 from kvtracker_sdk.models.da3.model import DA3Output
+from kvtracker_sdk.models.family import FrameOutputs, numpy_or_none
 
 __all__ = [
     "SDKOutput",
     "confidence_from_depth_conf",
+    "frames_from_heads",
+    "frames_from_sdk",
     "sdk_outputs",
     "to_sdk",
     "unproject_depth",
@@ -98,4 +102,42 @@ def sdk_outputs(
         depth=depth,
         confidence=confidence_from_depth_conf(depth_conf),
         local_points=points,
+    )
+
+
+def frames_from_sdk(sdk: SDKOutput) -> FrameOutputs:
+    """``SDKOutput`` of one sequence of F views ([1, F, ...] or [F, 1, ...]) -> ``FrameOutputs``
+    [F, ...] (numpy on the CPU)."""
+    return FrameOutputs(
+        poses=sdk.T_world_cam.flatten(0, 1).cpu().numpy(),
+        confidence=numpy_or_none(None if sdk.confidence is None else sdk.confidence.flatten(0, 1)),
+        local_points=numpy_or_none(
+            None if sdk.local_points is None else sdk.local_points.flatten(0, 1)
+        ),
+    )
+
+
+def frames_from_heads(
+    pose_enc: np.ndarray,
+    image_size: tuple[int, int],
+    *,
+    depth: np.ndarray | None = None,
+    depth_conf: np.ndarray | None = None,
+    with_points: bool = False,
+) -> FrameOutputs:
+    """The exported head graphs' outputs [F, ...] -> ``FrameOutputs``, through ``sdk_outputs``
+    (the PyTorch passes' arithmetic) on tensors sharing the arrays' memory."""
+    pose = torch.from_numpy(pose_enc)
+    _, intrinsics = decode_pose_encoding(pose, image_size)
+    sdk = sdk_outputs(
+        pose,
+        intrinsics,
+        depth=None if depth is None else torch.from_numpy(depth),
+        depth_conf=None if depth_conf is None else torch.from_numpy(depth_conf),
+        with_points=with_points,
+    )
+    return FrameOutputs(
+        poses=sdk.T_world_cam.numpy(),
+        confidence=numpy_or_none(sdk.confidence),
+        local_points=numpy_or_none(sdk.local_points),
     )

@@ -23,24 +23,19 @@ block, tokens [B, N*T, C]) -> tokens:
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
 from typing import cast
 
 import torch
 from torch import nn
 
-from kvtracker_sdk.models.layers.attention import (
-    CacheBuffers,
-    check_cache_buffers,
-    keyframe_query_mask,
-)
+from kvtracker_sdk.models.layers.attention import CacheBuffers, keyframe_query_mask
 from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.cache_layout import CacheLayout
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 
 __all__ = [
     "CacheTrackingStep",
     "FullStep",
-    "GlobalLayout",
     "GlobalStep",
     "KVRecordingStep",
     "PastInputsStep",
@@ -51,29 +46,9 @@ __all__ = [
 GlobalStep = Callable[[int, Block, torch.Tensor], torch.Tensor]
 
 
-@dataclass(frozen=True)
-class GlobalLayout:
-    """Which blocks are global (their K/V are cached), and their attention shape."""
-
-    block_indices: tuple[int, ...]
-    num_heads: int
-    head_dim: int
-
-    def check_cache(self, cache: CacheBuffers, *, dtype: torch.dtype, device: torch.device) -> None:
-        """Raise ``CacheError`` unless every global layer has buffers of the right shape and dtype."""
-        check_cache_buffers(
-            cache,
-            block_indices=self.block_indices,
-            num_heads=self.num_heads,
-            head_dim=self.head_dim,
-            dtype=dtype,
-            device=device,
-        )
-
-
 def run_alternating(
     x: torch.Tensor,
-    blocks: Sequence[nn.Module],
+    blocks: nn.ModuleList,
     *,
     start: int,
     local_rope: RopeTable | None,
@@ -139,7 +114,7 @@ class CacheTrackingStep:
     def __init__(
         self,
         cache: CacheBuffers,
-        layout: GlobalLayout,
+        layout: CacheLayout,
         *,
         frames: int,
         tokens_per_frame: int,

@@ -24,13 +24,13 @@ from torch import nn
 from kvtracker_sdk.models.layers.alternating import (
     CacheTrackingStep,
     FullStep,
-    GlobalLayout,
     GlobalStep,
     KVRecordingStep,
     run_alternating,
 )
 from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.block import Block
+from kvtracker_sdk.models.layers.cache_layout import CacheLayout
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.pi3.config import Pi3DecoderConfig
 
@@ -51,7 +51,7 @@ class Pi3Decoder(nn.ModuleList):
             )
             for _ in range(config.depth)
         )
-        self.layout = GlobalLayout(config.global_block_indices, config.num_heads, config.head_dim)
+        self.layout = CacheLayout(config.global_block_indices, config.num_heads, config.head_dim)
         self.num_heads = config.num_heads
         self.head_dim = config.head_dim
         self.global_block_indices = config.global_block_indices

@@ -109,12 +109,18 @@ class CameraHead(nn.Module):
         self.fc_t = nn.Linear(dim, 3)
         self.fc_rot = nn.Linear(dim, 9)
 
-    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+    def raw(self, tokens: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> the 3x3 before projection [frames, 9] (row-major) and the translation [frames, 3]
+        (the exported camera graph stops here: the SVD runs in float64 numpy)."""
         for block in self.res_conv:
             tokens = block(tokens)
         pooled = self.more_mlps(tokens.mean(dim=1))  # mean over the patch tokens: [frames, dim]
-        pose = torch.zeros(tokens.shape[0], 4, 4, dtype=pooled.dtype, device=pooled.device)
-        pose[:, :3, :3] = rotation_from_matrix9(self.fc_rot(pooled))
-        pose[:, :3, 3] = self.fc_t(pooled)
+        return self.fc_rot(pooled), self.fc_t(pooled)
+
+    def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        rotation_raw, translation = self.raw(tokens)
+        pose = torch.zeros(tokens.shape[0], 4, 4, dtype=translation.dtype, device=translation.device)
+        pose[:, :3, :3] = rotation_from_matrix9(rotation_raw)
+        pose[:, :3, 3] = translation
         pose[:, 3, 3] = 1.0
         return pose

@@ -145,17 +145,15 @@ class Pi3(nn.Module):
         global_attn_mask: torch.Tensor | None = None,
     ) -> Pi3Output:
         """Official forward on ``imgs`` [B, N, 3, H, W] in [0, 1]; see the module docstring."""
-        tokens, positions = self._encode(imgs)
-        rope = self._rope(positions, self.decoder.head_dim, tokens.dtype)
+        tokens, rope = self._encode(imgs)
         hidden = self.decoder(tokens, rope, global_attn_mask=global_attn_mask)
-        return self._heads(hidden, positions, (imgs.shape[-2], imgs.shape[-1]), heads)
+        return self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
 
     def forward_map(self, imgs: torch.Tensor, *, heads: HeadSet = HeadSet.ALL) -> Pi3MapOutput:
         """Forward on keyframes [B, N, 3, H, W] that also returns every global block's K/V."""
-        tokens, positions = self._encode(imgs)
-        rope = self._rope(positions, self.decoder.head_dim, tokens.dtype)
+        tokens, rope = self._encode(imgs)
         hidden, keys, values = self.decoder.forward_map(tokens, rope)
-        output = self._heads(hidden, positions, (imgs.shape[-2], imgs.shape[-1]), heads)
+        output = self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
         return Pi3MapOutput(output, keys, values, tokens_per_frame=tokens.shape[2])
 
     def forward_track(
@@ -166,53 +164,84 @@ class Pi3(nn.Module):
             raise ImageShapeError(
                 f"tracking expects frames [F, 3, H, W], got shape {tuple(imgs.shape)}"
             )
-        tokens, positions = self._encode(imgs.unsqueeze(0))  # one sequence of F frames
-        rope = self._rope(positions, self.decoder.head_dim, tokens.dtype)
+        tokens, rope = self._encode(imgs.unsqueeze(0))  # one sequence of F frames
         hidden = self.decoder.forward_track(tokens, rope, cache)
         # [1, F, T, 2*dim] -> [F, 1, T, 2*dim]: the frames are independent sequences
-        return self._heads(
-            hidden.transpose(0, 1), positions, (imgs.shape[-2], imgs.shape[-1]), heads
-        )
+        return self._heads(hidden.transpose(0, 1), (imgs.shape[-2], imgs.shape[-1]), heads)
 
     # ------------------------------------------------------------------ stages
-    def _encode(self, imgs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """[B, N, 3, H, W] in [0, 1] -> decoder tokens [B, N, T, dim], positions [T, 2]."""
+    # (public: the exported graphs, ``models/pi3/graphs.py``, are made of them)
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """Frames [F, 3, H, W] RGB in [0, 1] -> patch tokens [F, h*w, dim] (ImageNet-normalised,
+        encoder in the compute dtype)."""
+        normalised = (images.float() - self.image_mean) / self.image_std
+        return self.encoder(normalised.to(self.compute_dtype))
+
+    def decoder_tokens(self, patches: torch.Tensor) -> torch.Tensor:
+        """Patch tokens [F, h*w, dim] -> decoder tokens [F, R + h*w, dim] (registers first)."""
+        registers = self.register_token.reshape(1, self.num_register_tokens, -1)
+        return torch.cat((registers.expand(patches.shape[0], -1, -1), patches), dim=1)
+
+    def grid_rope(
+        self,
+        grid_h: int,
+        grid_w: int,
+        head_dim: int,
+        *,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> RopeTable:
+        """RoPE2D table [R + h*w, head_dim] of one frame's tokens (registers, then the h x w
+        patches; angles rounded to ``dtype``)."""
+        positions = grid_positions(
+            grid_h, grid_w, num_prefix_tokens=self.num_register_tokens, device=device
+        )
+        return rope_table(positions, head_dim, base=self.config.decoder.rope_base, dtype=dtype)
+
+    def head_tokens(self, decoder: nn.Module, hidden: torch.Tensor, rope: RopeTable) -> torch.Tensor:
+        """A head decoder over the decoder output [F, R + h*w, 2*dim] -> its patch tokens
+        [F, h*w, out_dim] (the heads read patch tokens only)."""
+        return decoder(hidden, rope)[:, self.num_register_tokens :]
+
+    @staticmethod
+    def local_points(raw: torch.Tensor) -> torch.Tensor:
+        """The point head's (u, v, d) [..., 3] -> camera-frame points, z = exp(d) > 0."""
+        xy, log_depth = raw.split([2, 1], dim=-1)
+        depth = torch.exp(log_depth)
+        return torch.cat((xy * depth, depth), dim=-1)
+
+    def _encode(self, imgs: torch.Tensor) -> tuple[torch.Tensor, RopeTable]:
+        """[B, N, 3, H, W] in [0, 1] -> decoder tokens [B, N, T, dim] and one frame's RoPE table."""
         if imgs.dim() != 5 or imgs.shape[2] != 3:
             raise ImageShapeError(f"expected images [B, N, 3, H, W], got shape {tuple(imgs.shape)}")
         batch, frames, _, height, width = imgs.shape
-        normalised = (
-            imgs.reshape(batch * frames, 3, height, width).float() - self.image_mean
-        ) / self.image_std
-        patches = self.encoder(normalised.to(self.compute_dtype))  # [B*N, h*w, dim]
-        registers = self.register_token.reshape(1, self.num_register_tokens, -1)
-        tokens = torch.cat((registers.expand(batch * frames, -1, -1), patches), dim=1)
+        tokens = self.decoder_tokens(self.encode(imgs.reshape(batch * frames, 3, height, width)))
         patch = self.config.patch_size
-        positions = grid_positions(
+        rope = self.grid_rope(
             height // patch,
             width // patch,
-            num_prefix_tokens=self.num_register_tokens,
+            self.decoder.head_dim,
+            dtype=tokens.dtype,
             device=imgs.device,
         )
-        return tokens.reshape(batch, frames, tokens.shape[1], -1), positions
+        return tokens.reshape(batch, frames, tokens.shape[1], -1), rope
 
-    def _rope(self, positions: torch.Tensor, head_dim: int, dtype: torch.dtype) -> RopeTable:
-        """RoPE2D table of one frame's positions [T, 2] (angles rounded to ``dtype``)."""
-        return rope_table(positions, head_dim, base=self.config.decoder.rope_base, dtype=dtype)
-
-    def _heads(
-        self,
-        hidden: torch.Tensor,
-        positions: torch.Tensor,
-        image_size: tuple[int, int],
-        heads: HeadSet,
-    ) -> Pi3Output:
+    def _heads(self, hidden: torch.Tensor, image_size: tuple[int, int], heads: HeadSet) -> Pi3Output:
         """Decoder output [B, N, T, 2*dim] -> per-frame outputs (float32)."""
         batch, frames, length, _ = hidden.shape
         height, width = image_size
         grid_h, grid_w = height // self.config.patch_size, width // self.config.patch_size
         hidden = hidden.reshape(batch * frames, length, -1)
         head_dim = self.config.heads.embed_dim // self.config.heads.num_heads
-        rope = self._rope(positions, head_dim, hidden.dtype)
+        rope = self.grid_rope(grid_h, grid_w, head_dim, dtype=hidden.dtype, device=hidden.device)
+
+        camera_tokens = self.head_tokens(self.camera_decoder, hidden, rope)
+        conf_tokens = None
+        if heads is not HeadSet.CAMERA:
+            conf_tokens = self.head_tokens(self.conf_decoder, hidden, rope)
+        point_tokens = None
+        if heads is HeadSet.ALL:
+            point_tokens = self.head_tokens(self.point_decoder, hidden, rope)
         skip = self.num_register_tokens  # the heads read patch tokens only
 
         camera_tokens = self.camera_decoder(hidden, rope)[:, skip:]
@@ -228,9 +257,7 @@ class Pi3(nn.Module):
                 conf = conf.reshape(batch, frames, height, width, 1)
             if point_tokens is not None:
                 raw = self.point_head(point_tokens.float(), grid_h, grid_w)
-                xy, log_depth = raw.reshape(batch, frames, height, width, 3).split([2, 1], dim=-1)
-                depth = torch.exp(log_depth)
-                local_points = torch.cat((xy * depth, depth), dim=-1)
+                local_points = self.local_points(raw.reshape(batch, frames, height, width, 3))
                 rotation, translation = poses[..., :3, :3], poses[..., :3, 3]
                 points = (
                     torch.einsum("bnij,bnhwj->bnhwi", rotation, local_points)

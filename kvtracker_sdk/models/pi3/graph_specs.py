@@ -7,16 +7,18 @@ from __future__ import annotations
 
 from typing import Any
 
-from kvtracker_sdk.backends.onnx_manifest import TensorSpec
-from kvtracker_sdk.export_onnx.graph_def import (
+from kvtracker_sdk.models.graph_io import (
     GraphDef,
+    TensorSpec,
     encoder_def,
     example_pass,
+    past_length_spec,
     past_specs,
     patch_tokens,
     present_specs,
 )
-from kvtracker_sdk.export_onnx.pi3_graphs import (
+from kvtracker_sdk.models.pi3.config import Pi3Config
+from kvtracker_sdk.models.pi3.graphs import (
     CameraHeadGraph,
     ConfHeadGraph,
     DecoderMapGraph,
@@ -24,7 +26,7 @@ from kvtracker_sdk.export_onnx.pi3_graphs import (
     EncoderGraph,
     PointsHeadGraph,
 )
-from kvtracker_sdk.models.pi3 import Pi3, Pi3Config
+from kvtracker_sdk.models.pi3.model import Pi3
 
 __all__ = ["example_inputs", "pi3_graphs"]
 
@@ -37,7 +39,7 @@ def _hidden(frames: int | str, dim: int, registers: int) -> tuple[TensorSpec, Te
 
 
 def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
-    """Every graph of a Pi3 export (see ``backends/onnx_manifest.py`` for their meaning)."""
+    """Every graph of a Pi3 export (their meaning: ``backends/onnx_manifest.py``)."""
     dim = config.decoder.embed_dim
     registers = config.decoder.num_register_tokens
     heads, head_dim = config.decoder.num_heads, config.decoder.head_dim
@@ -52,7 +54,7 @@ def pi3_graphs(config: Pi3Config) -> list[GraphDef]:
         GraphDef(
             "decoder_track",
             DecoderTrackGraph,
-            (query_patches, TensorSpec(name="past_length", shape=(), dtype="int64"), *past),
+            (query_patches, past_length_spec(), *past),
             _hidden(1, dim, registers),
         ),
         GraphDef(

@@ -1,4 +1,4 @@
-"""Family adapters of TorchBackend: both families answer in the SDK's conventions."""
+"""The family records (``models/<family>/family.py``): both answer in the SDK's conventions."""
 
 from __future__ import annotations
 
@@ -7,21 +7,26 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from kvtracker_sdk.backends.torch_families import DA3Family, Pi3Family, family_adapter
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.models.da3 import load_da3
+from kvtracker_sdk.models.da3.family import DA3Family
+from kvtracker_sdk.models.family import FrameOutputs, ModelFamily
 from kvtracker_sdk.models.pi3 import load_pi3
+from kvtracker_sdk.models.pi3.family import Pi3Family
+from kvtracker_sdk.models.registry import FAMILIES, family_of
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import shared_path
 
 
-def _cache(family: DA3Family | Pi3Family, frames: torch.Tensor) -> tuple[KVCache, object]:
-    mapped = family.map(frames)
+def _cache(
+    family: ModelFamily, model: torch.nn.Module, frames: torch.Tensor
+) -> tuple[KVCache, FrameOutputs]:
+    mapped = family.map(model, frames)
     cache = KVCache.from_layers(
         mapped.keys,
         mapped.values,
-        layout=family.layout,
+        layout=family.cache_layout(model),
         tokens_per_frame=mapped.tokens_per_frame,
         keyframe_ids=range(frames.shape[0]),
     )
@@ -29,13 +34,14 @@ def _cache(family: DA3Family | Pi3Family, frames: torch.Tensor) -> tuple[KVCache
 
 
 @torch.no_grad()
-def test_da3_adapter_converts_conventions() -> None:
+def test_da3_record_converts_conventions() -> None:
     model = load_da3(shared_path("golden", "da3", "weights.safetensors")).model
-    family = family_adapter(model)
-    assert isinstance(family, DA3Family) and family.family == "da3"
-    assert family.extra_tokens_per_frame == 1 and family.layout.block_indices == (5, 7, 9, 11)
+    family = family_of(model)
+    assert isinstance(family, DA3Family) and family.name == "da3"
+    assert family.extra_tokens_per_frame(model) == 1
+    assert family.cache_layout(model).block_indices == (5, 7, 9, 11)
     imgs = load_file(shared_path("golden", "da3", "inputs.safetensors"))["imgs_01"][0]
-    cache, frames = _cache(family, imgs[:3])
+    cache, frames = _cache(family, model, imgs[:3])
     assert frames.poses.dtype == np.float64 and frames.poses.shape == (3, 4, 4)
     expected = load_file(shared_path("golden", "da3", "outputs_query.safetensors"))
     # T_world_cam is the inverse of DA3's world-to-camera extrinsics
@@ -47,27 +53,27 @@ def test_da3_adapter_converts_conventions() -> None:
     np.testing.assert_allclose(
         frames.local_points[..., 2], expected["keyframes.depth"][0].numpy(), rtol=1e-4
     )
-    camera = family.track(imgs[3:4], cache, HeadSet.CAMERA)
+    camera = family.track(model, imgs[3:4], cache, HeadSet.CAMERA)
     assert camera.confidence is None and camera.local_points is None
-    full = family.track(imgs[3:4], cache, HeadSet.ALL)
+    full = family.track(model, imgs[3:4], cache, HeadSet.ALL)
     np.testing.assert_array_equal(camera.poses, full.poses)
     assert full.local_points is not None and full.local_points.shape == (1, 112, 154, 3)
-    confidence = family.track(imgs[3:4], cache, HeadSet.CONFIDENCE)
+    confidence = family.track(model, imgs[3:4], cache, HeadSet.CONFIDENCE)
     assert confidence.confidence is not None and confidence.local_points is None
 
 
 @torch.no_grad()
-def test_pi3_adapter_keeps_its_outputs() -> None:
+def test_pi3_record_keeps_its_outputs() -> None:
     model = load_pi3(shared_path("golden", "pi3", "weights.safetensors")).model
-    family = family_adapter(model)
-    assert isinstance(family, Pi3Family) and family.extra_tokens_per_frame == 5
+    family = family_of(model)
+    assert isinstance(family, Pi3Family) and family.extra_tokens_per_frame(model) == 5
     imgs = load_file(shared_path("golden", "pi3", "case1", "inputs.safetensors"))["imgs"][0]
-    cache, frames = _cache(family, imgs[:3])
+    cache, frames = _cache(family, model, imgs[:3])
     expected = load_file(shared_path("golden", "pi3", "case1", "outputs_query.safetensors"))
     np.testing.assert_allclose(
         frames.poses, expected["keyframes.camera_poses"][0].numpy(), atol=1e-5
     )
-    tracked = family.track(imgs[3:4], cache, HeadSet.CONFIDENCE)
+    tracked = family.track(model, imgs[3:4], cache, HeadSet.CONFIDENCE)
     np.testing.assert_allclose(
         tracked.poses, expected["query.camera_poses"][:, 0].numpy(), atol=1e-5
     )
@@ -76,4 +82,10 @@ def test_pi3_adapter_keeps_its_outputs() -> None:
 
 def test_other_networks_are_rejected() -> None:
     with pytest.raises(ModelError, match="neither a Pi3 nor a DepthAnything3"):
-        family_adapter(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
+        family_of(torch.nn.Linear(2, 2))
+
+
+def test_the_registry_lists_each_family_once_under_its_name() -> None:
+    assert list(FAMILIES) == ["pi3", "da3"]
+    assert all(name == family.name for name, family in FAMILIES.items())
+    assert len({family.model_type for family in FAMILIES.values()}) == len(FAMILIES)

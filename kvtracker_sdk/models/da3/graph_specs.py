@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from kvtracker_sdk.backends.onnx_manifest import TensorSpec
-from kvtracker_sdk.export_onnx.da3_graphs import (
+from kvtracker_sdk.models.da3.config import DA3Config
+from kvtracker_sdk.models.da3.graphs import (
     NUM_FEATURE_LEVELS,
     CameraHeadGraph,
     DecoderMapGraph,
@@ -16,15 +16,17 @@ from kvtracker_sdk.export_onnx.da3_graphs import (
     DepthHeadGraph,
     EncoderGraph,
 )
-from kvtracker_sdk.export_onnx.graph_def import (
+from kvtracker_sdk.models.da3.model import DepthAnything3
+from kvtracker_sdk.models.graph_io import (
     GraphDef,
+    TensorSpec,
     encoder_def,
     example_pass,
+    past_length_spec,
     past_specs,
     patch_tokens,
     present_specs,
 )
-from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
 
 __all__ = ["da3_graphs", "example_inputs"]
 
@@ -41,7 +43,7 @@ def _head_inputs(frames: int | str, dim: int) -> tuple[TensorSpec, ...]:
 
 
 def da3_graphs(config: DA3Config) -> list[GraphDef]:
-    """Every graph of a DA3 export (see ``backends/onnx_manifest.py`` for their meaning)."""
+    """Every graph of a DA3 export (their meaning: ``backends/onnx_manifest.py``)."""
     vit = config.backbone
     dim, heads, head_dim = vit.embed_dim, vit.num_heads, vit.head_dim
     layers = len(vit.global_block_indices)
@@ -60,7 +62,7 @@ def da3_graphs(config: DA3Config) -> list[GraphDef]:
             DecoderTrackGraph,
             (
                 query_patches,
-                TensorSpec(name="past_length", shape=(), dtype="int64"),
+                past_length_spec(),
                 *past_specs(layers, heads, head_dim),
             ),
             _head_inputs(1, dim),

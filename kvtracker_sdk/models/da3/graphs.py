@@ -1,9 +1,11 @@
 """Depth Anything 3 cut into exportable graphs: thin ``nn.Module`` views over one loaded model.
 
-Each module's ``forward`` is the computation of one ONNX graph (names and shapes in
-``backends/onnx_manifest.py``). As for Pi3 (``pi3_graphs.py``), the patch grid travels in tensor
-shapes ([F, h, w, C]) so that H and W stay dynamic, and the tracking decoder reads its past K/V
-inputs by slicing (``past_attention.attend_past``). The split follows DA3's backbone:
+Each module's ``forward`` is the computation of one graph (signatures in ``graph_specs.py``) and
+runs the model's own stages (``DA3Backbone.embed_views`` / ``run_per_view`` / ``run_alternating``,
+``DualDPT.forward_views``). As for Pi3 (``models/pi3/graphs.py``), the patch grid travels in
+tensor shapes ([F, h, w, C]) so that H and W stay dynamic, and the tracking decoder's global step
+is ``PastInputsStep`` (``models/layers/alternating.py``: past K/V inputs read by slicing). The
+split follows DA3's backbone:
 
 - ``encoder``: ImageNet normalisation, patch and position embedding, and the per-view blocks
   before ``alt_start`` (no camera token yet): the patch tokens entering block ``alt_start``;
@@ -13,7 +15,7 @@ inputs by slicing (``past_attention.attend_past``). The split follows DA3's back
 - ``decoder_track``: one query with the **non-reference** camera token, each global block
   attending over the past K/V and the query itself;
 - ``head_camera``: ``cam_dec`` on the camera tokens -> ``pose_enc`` [F, 9] (the pose and the
-  intrinsics are decoded in numpy, ``backends/onnx_families.py``);
+  intrinsics are decoded by ``conventions.sdk_outputs``, as for the PyTorch passes);
 - ``head_depth``: the DualDPT main branch -> depth and its confidence (the auxiliary rays, which
   DA3 drops at inference, are not exported).
 
@@ -27,10 +29,9 @@ from typing import cast
 import torch
 from torch import nn
 
-from kvtracker_sdk.export_onnx.past_attention import attend_past
-from kvtracker_sdk.models.da3 import DepthAnything3
 from kvtracker_sdk.models.da3.backbone import BackboneOutput
-from kvtracker_sdk.models.layers.block import Block, KVRecordingStep
+from kvtracker_sdk.models.da3.model import DepthAnything3
+from kvtracker_sdk.models.layers.alternating import KVRecordingStep, PastInputsStep
 
 __all__ = [
     "CameraHeadGraph",
@@ -115,12 +116,7 @@ class DecoderTrackGraph(nn.Module):
         _, grid_h, grid_w, _ = patch_tokens.shape
         x = _views(patch_tokens)
         camera = backbone.pretrained.camera_token[:, 1:]  # [1, 1, C]: the non-reference token
-        rope = backbone.global_rope(x)
-
-        def step(layer: int, block: Block, tokens: torch.Tensor) -> torch.Tensor:
-            key, value = past[2 * layer], past[2 * layer + 1]
-            return attend_past(cast(Block, block), tokens, rope, key, value, past_length)
-
+        step = PastInputsStep(past, past_length, backbone.global_rope(x))
         output = backbone.run_alternating(x, (grid_h, grid_w), camera, step)
         return _head_inputs(output, grid_h, grid_w)
 
