@@ -25,9 +25,9 @@ from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.errors import ConfigError
 
 if TYPE_CHECKING:
+    from pydantic import BaseModel
+
     from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
-    from kvtracker_sdk.models.da3 import DA3Config
-    from kvtracker_sdk.models.pi3 import Pi3Config
 
 __all__ = ["export_onnx_command", "register"]
 
@@ -40,35 +40,34 @@ def parse_size(text: str) -> tuple[int, int]:
     return int(height), int(width)
 
 
-def load_config(text: str) -> Pi3Config | DA3Config:
-    """An architecture: ``large`` / ``pi3`` (the released Pi3), ``da3-small`` ... ``da3-giant``,
-    or a JSON file holding a ``Pi3Config`` or a ``DA3Config``."""
+def load_config(text: str) -> BaseModel:
+    """An architecture: a preset name of a family (``large`` / ``pi3``, ``da3-small`` ...
+    ``da3-giant``) or a JSON file holding one family's configuration."""
     from pydantic import ValidationError
 
-    from kvtracker_sdk.models.da3 import DA3Config
-    from kvtracker_sdk.models.pi3 import Pi3Config
+    from kvtracker_sdk.models.registry import FAMILIES
 
-    if text in ("large", "pi3"):
-        return Pi3Config.large()
-    if text.startswith("da3-") and not Path(text).exists():
-        return DA3Config.preset(text.removeprefix("da3-"))
+    if not Path(text).exists():
+        for family in FAMILIES.values():
+            if (preset := family.preset_config(text)) is not None:
+                return preset
     path = Path(text)
     if not path.is_file():
+        names = ", ".join(name for family in FAMILIES.values() for name in family.preset_names)
         raise ConfigError(
-            f"--config is 'large', a DA3 preset (da3-small, da3-base, da3-large, da3-giant) or a "
-            f"config JSON file; {text!r} is none of those"
+            f"--config is a preset ({names}) or a config JSON file; {text!r} is none of those"
         )
     try:
         raw = path.read_text()
     except OSError as exc:
         raise ConfigError(f"cannot read {path}: {exc}") from exc
     errors = []
-    for kind in (Pi3Config, DA3Config):
+    for family in FAMILIES.values():
         try:
-            return kind.model_validate_json(raw)
+            return family.config_type.model_validate_json(raw)
         except ValidationError as exc:
-            errors.append(f"as a {kind.__name__}: {exc}")
-    raise ConfigError(f"{path} is neither a valid Pi3Config nor a DA3Config ({'; '.join(errors)})")
+            errors.append(f"as a {family.config_type.__name__}: {exc}")
+    raise ConfigError(f"{path} is no model family's configuration ({'; '.join(errors)})")
 
 
 def summary(manifest: OnnxManifest, out_dir: Path) -> str:
@@ -98,7 +97,7 @@ def export_onnx_command(
         help="Checkpoint: a model name (pi3, da3-small, ...), a .safetensors file, a folder "
              "holding one, or a hub id.")] = DEFAULT_WEIGHTS,
     config: Annotated[str | None, typer.Option(
-        help="'large' (Pi3), a DA3 preset such as 'da3-small', or a config JSON file. "
+        help="A preset ('large' for Pi3, 'da3-small', ...) or a config JSON file. "
              "[default: inferred from the checkpoint]")] = None,
     random_weights: Annotated[bool, typer.Option(
         "--random-weights", help="No checkpoint: random weights of --config (tests, benchmarks).")] = False,

@@ -19,8 +19,9 @@ import hashlib
 import os
 import re
 import socket
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import TypeVar
 from urllib.parse import urlparse
 
 import torch
@@ -34,6 +35,8 @@ from kvtracker_sdk.errors import (
     ModelError,
     WeightsNotFoundError,
 )
+
+ModuleT = TypeVar("ModuleT", bound=nn.Module)
 
 __all__ = [
     "DEFAULT_FILENAME",
@@ -185,3 +188,18 @@ def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
         return load_file(path)
     except (SafetensorError, ValueError) as exc:
         raise ModelError(f"{path} is not a readable .safetensors checkpoint: {exc}") from exc
+
+
+def load_strictly(
+    make: Callable[[], ModuleT], state_dict: Mapping[str, torch.Tensor]
+) -> tuple[ModuleT, str]:
+    """The network ``make()`` builds, holding ``state_dict`` exactly (``CheckpointMismatchError``
+    lists any missing, unexpected or wrongly shaped key), in eval mode, and the weights'
+    fingerprint. The network is built on the meta device, so no memory is spent on a random init
+    that the checkpoint overwrites."""
+    with torch.device("meta"):
+        model = make()
+    check_state_dict(model, state_dict)
+    fingerprint = weights_fingerprint(state_dict)
+    model.load_state_dict(state_dict, strict=True, assign=True)
+    return model.eval(), fingerprint

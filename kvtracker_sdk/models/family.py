@@ -9,6 +9,7 @@ folder and one registry line:
 |---|---|
 | ``name``, ``display_name``, ``model_type``, ``config_type`` | identity: ``"pi3"``, ``"Pi3"``, the ``nn.Module``, its pydantic config |
 | ``hub_repos`` | user-facing model names -> official hub repositories (``MODEL_NAMES``) |
+| ``preset_names``, ``preset_config(name)`` | architectures by name (``export-onnx --config``) |
 | ``owns_checkpoint(keys)`` | whether a checkpoint's tensor names are this family's |
 | ``load(path, config)`` | the network from a ``.safetensors`` file, strictly, with its weights fingerprint |
 | ``build(config)`` | a network with random weights (tests, benchmarks, exports of a config) |
@@ -99,6 +100,7 @@ class ModelFamily(ABC):
     config_type: ClassVar[type[BaseModel]]
     hub_repos: ClassVar[Mapping[str, str]]  # model name -> hub repository
     graph_names: ClassVar[tuple[str, ...]]  # the export's graphs, in the order they run
+    preset_names: ClassVar[tuple[str, ...]]  # architectures a user may name (``--config``)
 
     # ------------------------------------------------------------------ checkpoints
     @abstractmethod
@@ -106,6 +108,11 @@ class ModelFamily(ABC):
 
     @abstractmethod
     def load(self, path: Path, config: Any | None) -> LoadedNetwork: ...
+
+    @abstractmethod
+    def preset_config(self, name: str) -> BaseModel | None:
+        """The architecture called ``name`` (one of ``preset_names``), None if not this
+        family's; ``ConfigError`` for a name of this family that no preset has."""
 
     def build(self, config: Any) -> nn.Module:
         """A network of ``config`` with PyTorch's random init (seed it first), eval mode."""

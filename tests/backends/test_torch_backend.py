@@ -1,4 +1,5 @@
-"""TorchBackend: the Backend contract on a small random Pi3 (and the golden checkpoint)."""
+"""TorchBackend: the Backend contract on a small random Pi3 (and the golden checkpoint); the tests
+both families share are in ``test_torch_backend_families.py``."""
 
 from __future__ import annotations
 
@@ -9,12 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
 from kvtracker_sdk.errors import (
     BackendMismatchError,
-    ConfigError,
     ImageDtypeError,
     ImageShapeError,
     MaskError,
@@ -44,25 +43,6 @@ def images() -> np.ndarray:
     return np.random.default_rng(0).integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
 
 
-def test_info(backend: TorchBackend, model: Pi3) -> None:
-    info = backend.info
-    assert isinstance(backend, Backend)
-    assert (info.backend, info.family, info.model) == ("torch", "pi3", "tiny")
-    assert info.patch_size == 14 and info.extra_tokens_per_frame == 5
-    assert info.layout == CacheLayout((1, 3), 2, 16)
-    assert (info.dtype, info.device) == ("float32", "cpu")
-    assert info.config_hash == model.config.config_hash
-    assert info.tokens_per_frame(H, W) == 11
-    assert "sdpa" in info.accelerations
-    bf16 = TorchBackend(copy.deepcopy(model), dtype="bf16", model_name="tiny")
-    assert bf16.info.dtype == "bfloat16"
-    assert bf16.info.fingerprint == info.fingerprint  # same function family, config and weights
-    other = TorchBackend(random_pi3(seed=8), model_name="tiny")
-    assert other.info.fingerprint != info.fingerprint
-    with pytest.raises(ConfigError, match="float32 or bfloat16"):
-        TorchBackend(copy.deepcopy(model), dtype=torch.float16)
-
-
 def test_map_shapes_and_dtypes(backend: TorchBackend, images: np.ndarray) -> None:
     result = backend.map(images[:3])
     assert result.poses.shape == (3, 4, 4) and result.poses.dtype == np.float64
@@ -89,20 +69,6 @@ def test_map_equals_model_forward_map(
         result.poses, reference.output.camera_poses[0].double().numpy(), atol=1e-6
     )
     torch.testing.assert_close(result.cache.keys(1), reference.keys[1], atol=1e-6, rtol=0)
-
-
-@pytest.mark.parametrize("heads", list(HeadSet))
-def test_track_heads(backend: TorchBackend, images: np.ndarray, heads: HeadSet) -> None:
-    cache = backend.map(images[:3]).cache
-    result = backend.track(images[3], cache, heads=heads)
-    assert result.pose.shape == (4, 4) and result.pose.dtype == np.float64
-    assert (result.confidence is None) == (heads is HeadSet.CAMERA)
-    assert (result.local_points is None) == (heads is not HeadSet.ALL)
-    if result.confidence_map is not None:
-        assert result.confidence_map.shape == (H, W)
-        assert result.confidence == pytest.approx(float(result.confidence_map.mean()))
-    reference = backend.track(images[3], cache, heads=HeadSet.ALL)
-    np.testing.assert_array_equal(result.pose, reference.pose)
 
 
 def test_track_batch_equals_single_tracks(backend: TorchBackend, images: np.ndarray) -> None:
@@ -163,17 +129,6 @@ def test_typed_errors(backend: TorchBackend, model: Pi3, images: np.ndarray) -> 
     closed.close()  # idempotent
     with pytest.raises(StateError):
         closed.track(images[2], cache)
-
-
-def test_bf16_backend(model: Pi3, images: np.ndarray, backend: TorchBackend) -> None:
-    bf16 = TorchBackend(copy.deepcopy(model), dtype=torch.bfloat16)
-    mapped = bf16.map(images[:3])
-    assert mapped.cache.dtype == torch.bfloat16
-    result = bf16.track(images[3], mapped.cache, heads=HeadSet.ALL)
-    assert result.pose.dtype == np.float64 and np.isfinite(result.local_points).all()  # type: ignore[arg-type]
-    reference = backend.track(images[3], backend.map(images[:3]).cache)
-    # random tiny model: bf16 stays within 0.1 of fp32 in pose entries
-    np.testing.assert_allclose(result.pose, reference.pose, atol=0.1)
 
 
 def test_from_pretrained_golden_checkpoint() -> None:

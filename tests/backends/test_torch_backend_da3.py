@@ -1,4 +1,5 @@
-"""TorchBackend serving Depth Anything 3: SDK conventions, heads, bf16, family selection."""
+"""TorchBackend serving Depth Anything 3: SDK conventions and family selection (identity, heads
+and bf16 of both families: ``test_torch_backend_families.py``)."""
 
 from __future__ import annotations
 
@@ -8,10 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache.kv_cache import CacheLayout
-from kvtracker_sdk.errors import BackendMismatchError, ModelError
+from kvtracker_sdk.errors import BackendMismatchError
 from kvtracker_sdk.models.da3 import DepthAnything3, load_da3, to_sdk
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import shared_path
@@ -33,17 +33,6 @@ def backend(model: DepthAnything3) -> TorchBackend:
 @pytest.fixture(scope="module")
 def images() -> np.ndarray:
     return np.random.default_rng(0).integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
-
-
-def test_info(backend: TorchBackend, model: DepthAnything3) -> None:
-    info = backend.info
-    assert isinstance(backend, Backend)
-    assert (info.backend, info.family, info.model) == ("torch", "da3", "da3-custom")
-    assert info.extra_tokens_per_frame == 1 and info.tokens_per_frame(H, W) == 7
-    assert info.layout == CacheLayout((3, 5), 2, 8)
-    assert info.config_hash == model.config.config_hash
-    with pytest.raises(ModelError, match="neither a Pi3 nor a DepthAnything3"):
-        TorchBackend(torch.nn.Linear(2, 2))  # type: ignore[arg-type]
 
 
 @torch.no_grad()
@@ -70,35 +59,6 @@ def test_map_in_sdk_conventions(
         np.broadcast_to(np.eye(3), (3, 3, 3)),
         atol=1e-5,
     )
-
-
-@pytest.mark.parametrize("heads", list(HeadSet))
-def test_track_heads(backend: TorchBackend, images: np.ndarray, heads: HeadSet) -> None:
-    cache = backend.map(images[:3]).cache
-    result = backend.track(images[3], cache, heads=heads)
-    assert result.pose.shape == (4, 4) and result.pose.dtype == np.float64
-    assert (result.confidence is None) == (heads is HeadSet.CAMERA)
-    assert (result.local_points is None) == (heads is not HeadSet.ALL)
-    if result.confidence_map is not None:
-        assert result.confidence_map.shape == (H, W)
-        assert result.confidence == pytest.approx(float(result.confidence_map.mean()))
-    reference = backend.track(images[3], cache, heads=HeadSet.ALL)
-    np.testing.assert_array_equal(result.pose, reference.pose)
-    batch = backend.track_batch(images[2:], cache, heads=heads)
-    np.testing.assert_allclose(batch[1].pose, result.pose, atol=1e-6)
-
-
-def test_bf16_backend(model: DepthAnything3, images: np.ndarray, backend: TorchBackend) -> None:
-    bf16 = TorchBackend(copy.deepcopy(model), dtype="bf16")
-    assert bf16.info.fingerprint == backend.info.fingerprint
-    mapped = bf16.map(images[:3])
-    assert mapped.cache.dtype == torch.bfloat16
-    result = bf16.track(images[3], mapped.cache, heads=HeadSet.ALL)
-    reference = backend.track(images[3], backend.map(images[:3]).cache)
-    # random tiny model: bf16 stays within 0.1 of fp32 in pose entries
-    np.testing.assert_allclose(result.pose, reference.pose, atol=0.1)
-    with pytest.raises(BackendMismatchError, match=r"cache\.to"):
-        backend.track(images[3], mapped.cache)
 
 
 def test_from_pretrained_picks_the_family() -> None:

@@ -1,61 +1,20 @@
-"""The Depth Anything 3 export: manifest, graph signatures with dynamic axes, shared weights, and
-what cannot be exported. Uses the session's golden DA3 export (``golden_da3_onnx_dir``)."""
+"""What of Depth Anything 3 cannot be exported, and the exporter's refusal of a graph whose
+dynamic size came out fixed (manifest, signatures and shared weights: ``test_export_families.py``)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import onnx
 import pytest
 import torch
 from torch import nn
 
-from kvtracker_sdk.backends.onnx_manifest import FAMILY_GRAPHS, TensorSpec, read_manifest
-from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.backends.onnx_manifest import TensorSpec
 from kvtracker_sdk.errors import ConfigError, ModelError
 from kvtracker_sdk.export_onnx import export_model, exporter
 from kvtracker_sdk.export_onnx.graph_def import GraphDef
 from kvtracker_sdk.models.da3 import DepthAnything3
-from tests.export_onnx.signatures import assert_graphs_declare_the_manifest
-from tests.helpers import shared_path
 from tests.models.da3.factories import random_da3, tiny_config
-
-
-def test_manifest_identity_and_signatures(golden_da3_onnx_dir: Path) -> None:
-    manifest = read_manifest(golden_da3_onnx_dir)
-    torch_info = TorchBackend.from_pretrained(
-        shared_path("golden", "da3", "weights.safetensors")
-    ).info
-    assert (manifest.family, manifest.model) == ("da3", "da3-custom")
-    assert manifest.fingerprint == torch_info.fingerprint
-    assert manifest.cache_layout == torch_info.layout and manifest.extra_tokens_per_frame == 1
-    assert len(manifest.check) == 8 and max(manifest.check.values()) < 1e-4
-    assert tuple(manifest.graphs) == FAMILY_GRAPHS["da3"]
-    assert_graphs_declare_the_manifest(golden_da3_onnx_dir, manifest)
-    outputs = {s.name: s.shape for s in manifest.graphs["decoder_map"].outputs}
-    assert outputs["camera_tokens"] == ("frames", 256)
-    assert outputs["features.3"] == ("frames", "grid_h", "grid_w", 256)
-    assert outputs["present.3.value"] == (1, 2, "map_tokens", 64)
-    assert [s.name for s in manifest.graphs["head_depth"].inputs] == [
-        f"features.{level}" for level in range(4)
-    ]
-    assert [s.shape for s in manifest.graphs["head_depth"].outputs] == [
-        ("frames", "height", "width")
-    ] * 2
-
-
-def test_tracking_decoder_shares_the_mapping_decoders_weights(golden_da3_onnx_dir: Path) -> None:
-    def external(graph: str) -> set[tuple[str, str]]:
-        model = onnx.load(golden_da3_onnx_dir / f"{graph}.onnx", load_external_data=False)
-        return {
-            (entry["offset"], entry["length"])
-            for tensor in model.graph.initializer
-            if tensor.data_location == onnx.TensorProto.EXTERNAL
-            for entry in [{item.key: item.value for item in tensor.external_data}]
-        }
-
-    track, mapping = external("decoder_track"), external("decoder_map")
-    assert track and track <= mapping
 
 
 def test_unexportable_da3_models_are_refused(tmp_path: Path) -> None:

@@ -35,10 +35,9 @@ from kvtracker_sdk.errors import CheckpointMismatchError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import (
     DEFAULT_FILENAME,
-    check_state_dict,
+    load_strictly,
     read_state_dict,
     resolve_weights,
-    weights_fingerprint,
 )
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.da3.model import DepthAnything3
@@ -126,9 +125,5 @@ def load_da3(
     path = resolve_weights(weights, filename=filename)
     state_dict = canonical_state_dict(read_state_dict(path))
     config = config or DA3Config.from_state_dict(state_dict)
-    with torch.device("meta"):
-        model = DepthAnything3(config)
-    check_state_dict(model, state_dict)
-    fingerprint = weights_fingerprint(state_dict)
-    model.load_state_dict(state_dict, strict=True, assign=True)
-    return LoadedDA3(model=model.eval(), fingerprint=fingerprint, path=path)
+    model, fingerprint = load_strictly(lambda: DepthAnything3(config), state_dict)
+    return LoadedDA3(model=model, fingerprint=fingerprint, path=path)

@@ -46,6 +46,11 @@ class DA3Family(ModelFamily):
     hub_repos = {f"da3-{preset}": repo for preset, repo in HUB_REPOS.items()}
     graph_names = ("encoder", "decoder_map", "decoder_track", "head_camera", "head_depth")
 
+    preset_names = tuple(f"da3-{preset}" for preset in HUB_REPOS)
+
+    def preset_config(self, name: str) -> DA3Config | None:
+        return DA3Config.preset(name.removeprefix("da3-")) if name.startswith("da3-") else None
+
     def owns_checkpoint(self, keys: set[str]) -> bool:
         return bool(keys & _MARKERS)
 

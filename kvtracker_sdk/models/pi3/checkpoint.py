@@ -15,11 +15,10 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
 from kvtracker_sdk.models.checkpoint_utils import (
     DEFAULT_FILENAME,
     check_state_dict,
+    load_strictly,
     read_state_dict,
     resolve_weights,
     weights_fingerprint,
@@ -56,9 +55,5 @@ def load_pi3(
     path = resolve_weights(weights, filename=filename)
     state_dict = read_state_dict(path)
     config = config or Pi3Config.from_state_dict(state_dict)
-    with torch.device("meta"):
-        model = Pi3(config)
-    check_state_dict(model, state_dict)
-    fingerprint = weights_fingerprint(state_dict)
-    model.load_state_dict(state_dict, strict=True, assign=True)
-    return LoadedPi3(model=model.eval(), fingerprint=fingerprint, path=path)
+    model, fingerprint = load_strictly(lambda: Pi3(config), state_dict)
+    return LoadedPi3(model=model, fingerprint=fingerprint, path=path)

@@ -50,6 +50,11 @@ class Pi3Family(ModelFamily):
         "encoder", "decoder_map", "decoder_track", "head_camera", "head_conf", "head_points",
     )  # fmt: skip
 
+    preset_names = ("large",)  # "pi3" too: the released model's name
+
+    def preset_config(self, name: str) -> Pi3Config | None:
+        return Pi3Config.large() if name in ("large", "pi3") else None
+
     def owns_checkpoint(self, keys: set[str]) -> bool:
         return "register_token" in keys and any(key.startswith("decoder.0.") for key in keys)
 
