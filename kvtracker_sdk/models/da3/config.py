@@ -19,15 +19,12 @@ encoder (``cam_enc``, pose conditioning) is ``dim`` wide.
 
 from __future__ import annotations
 
-import hashlib
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     PositiveFloat,
     PositiveInt,
     ValidationError,
@@ -35,6 +32,7 @@ from pydantic import (
 )
 
 from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
+from kvtracker_sdk.models.architecture import ArchitectureConfig
 from kvtracker_sdk.models.checkpoint_utils import StateDictShapes
 from kvtracker_sdk.models.layers.swiglu import swiglu_hidden_dim
 
@@ -44,21 +42,7 @@ __all__ = ["DA3BackboneConfig", "DA3CameraEncoderConfig", "DA3Config", "DA3HeadC
 _OFFICIAL_OUT_LAYERS = {12: (5, 7, 9, 11), 24: (11, 15, 19, 23), 40: (19, 27, 33, 39)}
 
 
-class _Section(BaseModel):
-    """Frozen, strict-keys base; pydantic's ValidationError is re-raised as ConfigError."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as exc:
-            raise ConfigError(f"invalid {type(self).__name__}: {exc}") from exc
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        raise ConfigError(
-            f"{type(self).__name__} is frozen; make a copy with model_copy(update=...)"
-        )
+_Section = ArchitectureConfig  # every section: frozen, unknown keys refused, ConfigError
 
 
 class DA3BackboneConfig(_Section):
@@ -197,11 +181,6 @@ class DA3Config(_Section):
             if self == self.preset(name):
                 return name
         return None
-
-    @property
-    def config_hash(self) -> str:
-        """Stable hash of the architecture (16 hex chars), part of a backend's fingerprint."""
-        return hashlib.sha256(self.model_dump_json().encode()).hexdigest()[:16]
 
     # ------------------------------------------------------------------ inference from weights
     @classmethod

@@ -53,13 +53,12 @@ from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.da3.dualdpt import DualDPT
 from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy
 from kvtracker_sdk.models.layers.attention import CacheBuffers
+from kvtracker_sdk.models.layers.patch_embed import IMAGENET_MEAN, IMAGENET_STD
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["DA3MapOutput", "DA3Output", "DepthAnything3"]
 
 _FP32_MODULES = ("head", "cam_dec", "cam_enc")
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 @dataclass(frozen=True)
@@ -185,8 +184,8 @@ class DepthAnything3(nn.Module):
         if imgs.dim() != 5 or imgs.shape[2] != 3:
             raise ImageShapeError(f"expected images [B, N, 3, H, W], got shape {tuple(imgs.shape)}")
         # constants, not buffers: DA3 checkpoints hold no normalisation tensors
-        mean = torch.tensor(_IMAGENET_MEAN, device=imgs.device).view(1, 1, 3, 1, 1)
-        std = torch.tensor(_IMAGENET_STD, device=imgs.device).view(1, 1, 3, 1, 1)
+        mean = torch.tensor(IMAGENET_MEAN, device=imgs.device).view(1, 1, 3, 1, 1)
+        std = torch.tensor(IMAGENET_STD, device=imgs.device).view(1, 1, 3, 1, 1)
         return ((imgs.float() - mean) / std).to(self.compute_dtype)
 
     def _heads(

@@ -7,7 +7,11 @@ from torch import nn
 
 from kvtracker_sdk.errors import ImageShapeError
 
-__all__ = ["PatchEmbed"]
+__all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "PatchEmbed"]
+
+# RGB statistics every family's DINOv2 encoder was trained with (its inputs are normalised by them)
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 class PatchEmbed(nn.Module):

@@ -13,15 +13,11 @@ see concat(output of the second-to-last block, output of the last block).
 
 from __future__ import annotations
 
-import hashlib
 import math
 from collections.abc import Mapping
-from typing import Any
 
 import torch
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
     PositiveFloat,
     PositiveInt,
@@ -29,27 +25,14 @@ from pydantic import (
     model_validator,
 )
 
-from kvtracker_sdk.errors import CheckpointMismatchError, ConfigError
+from kvtracker_sdk.errors import CheckpointMismatchError
+from kvtracker_sdk.models.architecture import ArchitectureConfig
 from kvtracker_sdk.models.checkpoint_utils import StateDictShapes
 
 __all__ = ["Pi3Config", "Pi3DecoderConfig", "Pi3EncoderConfig", "Pi3HeadsConfig"]
 
 
-class _Section(BaseModel):
-    """Frozen, strict-keys base; pydantic's ValidationError is re-raised as ConfigError."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    def __init__(self, **data: Any) -> None:
-        try:
-            super().__init__(**data)
-        except ValidationError as exc:
-            raise ConfigError(f"invalid {type(self).__name__}: {exc}") from exc
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        raise ConfigError(
-            f"{type(self).__name__} is frozen; make a copy with model_copy(update=...)"
-        )
+_Section = ArchitectureConfig  # every section: frozen, unknown keys refused, ConfigError
 
 
 def _check_heads(name: str, dim: int, heads: int, *, rope: bool) -> None:
@@ -140,11 +123,6 @@ class Pi3Config(_Section):
     def large(cls) -> Pi3Config:
         """The released Pi3: ViT-L/14-reg4 encoder, 36-block 1024-dim decoder, 5-block heads."""
         return cls()
-
-    @property
-    def config_hash(self) -> str:
-        """Stable hash of the architecture (16 hex chars), part of a backend's fingerprint."""
-        return hashlib.sha256(self.model_dump_json().encode()).hexdigest()[:16]
 
     @classmethod
     def from_state_dict(

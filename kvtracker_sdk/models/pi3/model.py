@@ -35,6 +35,7 @@ from torch import nn
 
 from kvtracker_sdk.errors import ImageShapeError
 from kvtracker_sdk.models.layers.attention import CacheBuffers
+from kvtracker_sdk.models.layers.patch_embed import IMAGENET_MEAN, IMAGENET_STD
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 from kvtracker_sdk.models.pi3.config import Pi3Config
@@ -45,8 +46,6 @@ from kvtracker_sdk.types import HeadSet
 __all__ = ["Pi3", "Pi3MapOutput", "Pi3Output"]
 
 _FP32_HEADS = ("point_head", "conf_head", "camera_head")
-_IMAGENET_MEAN = (0.485, 0.456, 0.406)
-_IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 @dataclass(frozen=True)
@@ -111,8 +110,8 @@ class Pi3(nn.Module):
         self.conf_head = PixelShuffleHead(heads.point_out_dim, 1, config.patch_size)
         self.camera_decoder = head_decoder(heads.camera_out_dim)
         self.camera_head = CameraHead(heads.camera_out_dim)
-        self.register_buffer("image_mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1))
-        self.register_buffer("image_std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1))
+        self.register_buffer("image_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1))
+        self.register_buffer("image_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1))
 
     # ------------------------------------------------------------------ properties
     @property
