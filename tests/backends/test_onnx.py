@@ -1,4 +1,6 @@
-"""OnnxBackend: the Backend contract on the golden export, against TorchBackend on the same weights.
+"""OnnxBackend on the golden Pi3 export: typed errors, refusals, devices, closing, exporting a
+checkpoint once (identity, mapping and tracking against TorchBackend, for both families:
+``test_onnx_backend_families.py``).
 
 Both backends compute fp32; they may differ by float rounding only: poses atol 1e-5, confidence
 atol 1e-5, local points atol 1e-4 + rtol 1e-4 (the golden tolerances).
@@ -14,7 +16,7 @@ import numpy as np
 import pytest
 import torch
 
-from kvtracker_sdk.backends.base import Backend, MapResult
+from kvtracker_sdk.backends.base import MapResult
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.backends.torch_backend import TorchBackend
@@ -29,7 +31,6 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
     StateError,
 )
-from kvtracker_sdk.types import HeadSet
 from tests.helpers import shared_path
 
 H, W = 112, 154  # an 8 x 11 patch grid: 5 + 88 = 93 tokens per frame
@@ -41,11 +42,6 @@ def onnx_backend(golden_onnx_dir: Path) -> OnnxBackend:
 
 
 @pytest.fixture(scope="module")
-def torch_backend() -> TorchBackend:
-    return TorchBackend.from_pretrained(shared_path("golden", "pi3", "weights.safetensors"))
-
-
-@pytest.fixture(scope="module")
 def images() -> np.ndarray:
     return np.random.default_rng(0).integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
 
@@ -53,73 +49,6 @@ def images() -> np.ndarray:
 @pytest.fixture(scope="module")
 def onnx_map(onnx_backend: OnnxBackend, images: np.ndarray) -> MapResult:
     return onnx_backend.map(images[:3])
-
-
-@pytest.fixture(scope="module")
-def torch_map(torch_backend: TorchBackend, images: np.ndarray) -> MapResult:
-    return torch_backend.map(images[:3])
-
-
-def test_info_equals_the_torch_backends(
-    onnx_backend: OnnxBackend, torch_backend: TorchBackend
-) -> None:
-    info, reference = onnx_backend.info, torch_backend.info
-    assert isinstance(onnx_backend, Backend)
-    assert (info.backend, info.family, info.dtype, info.device) == ("onnx", "pi3", "float32", "cpu")
-    assert info.fingerprint == reference.fingerprint  # caches and maps cross between them
-    assert info.layout == reference.layout
-    assert (info.config_hash, info.weights_fingerprint) == (
-        reference.config_hash,
-        reference.weights_fingerprint,
-    )
-    assert info.tokens_per_frame(H, W) == reference.tokens_per_frame(H, W) == 93
-    assert info.accelerations == ("CPUExecutionProvider",)
-
-
-def test_map_matches_torch(onnx_map: MapResult, torch_map: MapResult) -> None:
-    assert onnx_map.poses.dtype == np.float64 and onnx_map.poses.shape == (3, 4, 4)
-    assert onnx_map.confidence.dtype == np.float32 and onnx_map.confidence.shape == (3, H, W)
-    assert onnx_map.local_points.dtype == np.float32 and not onnx_map.poses.flags.writeable
-    np.testing.assert_allclose(onnx_map.poses, torch_map.poses, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(onnx_map.confidence, torch_map.confidence, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(onnx_map.local_points, torch_map.local_points, atol=1e-4, rtol=1e-4)
-    cache, reference = onnx_map.cache, torch_map.cache
-    assert (cache.keyframe_ids, cache.tokens_per_frame, cache.dtype) == (
-        (0, 1, 2),
-        93,
-        torch.float32,
-    )
-    for layer in range(cache.layout.num_layers):
-        torch.testing.assert_close(cache.keys(layer), reference.keys(layer), atol=1e-5, rtol=0)
-        torch.testing.assert_close(cache.values(layer), reference.values(layer), atol=1e-5, rtol=0)
-    assert onnx_map.timings_ms["map"] > 0
-
-
-@pytest.mark.parametrize("heads", list(HeadSet))
-def test_track_on_either_backends_cache_matches_torch(
-    onnx_backend: OnnxBackend,
-    torch_backend: TorchBackend,
-    onnx_map: MapResult,
-    torch_map: MapResult,
-    images: np.ndarray,
-    heads: HeadSet,
-) -> None:
-    expected = torch_backend.track(images[3], torch_map.cache, heads=heads)
-    before = onnx_map.cache.clone()
-    for cache in (onnx_map.cache, torch_map.cache):  # a map made by either runtime
-        result = onnx_backend.track(images[3], cache, heads=heads)
-        np.testing.assert_allclose(result.pose, expected.pose, atol=1e-5, rtol=0)
-        assert (result.confidence is None) == (heads is HeadSet.CAMERA)
-        if result.confidence is not None:
-            assert result.confidence == pytest.approx(expected.confidence, abs=1e-5)
-            np.testing.assert_allclose(result.confidence_map, expected.confidence_map, atol=1e-5)
-        assert (result.local_points is None) == (heads is not HeadSet.ALL)
-        if result.local_points is not None:
-            np.testing.assert_allclose(
-                result.local_points, expected.local_points, atol=1e-4, rtol=1e-4
-            )
-        assert result.timings_ms["track"] > 0 and not result.pose.flags.writeable
-    assert onnx_map.cache.equals(before)  # tracking only reads the cache
 
 
 def test_bad_inputs_raise_typed_errors(

@@ -1,5 +1,6 @@
 """Depth Anything 3 on ONNX Runtime: the golden vectors (``../shared/golden/da3``) through the
-exported graphs, and ``OnnxBackend`` against ``TorchBackend`` on the same weights.
+exported graphs, and a Pi3 cache refused (``OnnxBackend`` against ``TorchBackend``, for both
+families: ``test_onnx_backend_families.py``).
 
 The runner is driven with the golden float images; its outputs are in the SDK's conventions, so
 the golden DA3 outputs are converted the way ``TorchBackend`` converts them: ``T_world_cam`` is
@@ -17,11 +18,9 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from kvtracker_sdk.backends.base import MapResult
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_manifest import read_manifest
 from kvtracker_sdk.backends.onnx_runtime import OnnxRunner
-from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import BackendMismatchError
 from kvtracker_sdk.geometry.se3 import invert_rigid
@@ -125,70 +124,15 @@ def test_head_sets_run_the_head_graphs_they_need(runner: OnnxRunner, heads: Head
     assert (tracked.local_points is None) == (heads is not HeadSet.ALL)
 
 
-# ---------------------------------------------------------------- OnnxBackend vs TorchBackend
+# ---------------------------------------------------------------- OnnxBackend
 @pytest.fixture(scope="module")
 def onnx_backend(golden_da3_onnx_dir: Path) -> OnnxBackend:
     return OnnxBackend(golden_da3_onnx_dir, threads=1)
 
 
 @pytest.fixture(scope="module")
-def torch_backend() -> TorchBackend:
-    return TorchBackend.from_pretrained(shared_path("golden", "da3", "weights.safetensors"))
-
-
-@pytest.fixture(scope="module")
 def images() -> np.ndarray:
     return np.random.default_rng(3).integers(0, 256, size=(4, H, W, 3), dtype=np.uint8)
-
-
-@pytest.fixture(scope="module")
-def maps(
-    onnx_backend: OnnxBackend, torch_backend: TorchBackend, images: np.ndarray
-) -> tuple[MapResult, MapResult]:
-    return onnx_backend.map(images[:3]), torch_backend.map(images[:3])
-
-
-def test_identity_equals_the_torch_backends(
-    onnx_backend: OnnxBackend, torch_backend: TorchBackend
-) -> None:
-    info, reference = onnx_backend.info, torch_backend.info
-    assert (info.backend, info.family, info.model) == ("onnx", "da3", "da3-custom")
-    assert info.fingerprint == reference.fingerprint and info.layout == reference.layout
-    assert info.tokens_per_frame(H, W) == reference.tokens_per_frame(H, W) == 1 + 7 * 14
-
-
-def test_map_matches_torch(maps: tuple[MapResult, MapResult]) -> None:
-    onnx_map, torch_map = maps
-    np.testing.assert_allclose(onnx_map.poses, torch_map.poses, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(onnx_map.confidence, torch_map.confidence, atol=1e-5, rtol=0)
-    np.testing.assert_allclose(onnx_map.local_points, torch_map.local_points, atol=1e-4, rtol=1e-4)
-    for layer in range(onnx_map.cache.layout.num_layers):
-        torch.testing.assert_close(
-            onnx_map.cache.keys(layer), torch_map.cache.keys(layer), atol=1e-5, rtol=0
-        )
-
-
-@pytest.mark.parametrize("heads", list(HeadSet))
-def test_track_on_either_backends_map_matches_torch(
-    onnx_backend: OnnxBackend,
-    torch_backend: TorchBackend,
-    maps: tuple[MapResult, MapResult],
-    images: np.ndarray,
-    heads: HeadSet,
-) -> None:
-    onnx_map, torch_map = maps
-    expected = torch_backend.track(images[3], torch_map.cache, heads=heads)
-    for cache in (onnx_map.cache, torch_map.cache):
-        result = onnx_backend.track(images[3], cache, heads=heads)
-        np.testing.assert_allclose(result.pose, expected.pose, atol=1e-5, rtol=0)
-        assert (result.confidence_map is None) == (expected.confidence_map is None)
-        if result.confidence_map is not None:
-            np.testing.assert_allclose(result.confidence_map, expected.confidence_map, atol=1e-5)
-        assert (result.local_points is None) == (expected.local_points is None)
-        if result.local_points is not None:
-            np.testing.assert_allclose(
-                result.local_points, expected.local_points, atol=1e-4, rtol=1e-4
-            )
 
 
 def test_a_pi3_cache_is_refused(
