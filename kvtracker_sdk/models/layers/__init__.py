@@ -6,6 +6,9 @@
   which a full forward equals cached tracking).
 - ``block``: the pre-norm ``Block`` (``Mlp`` from ``mlp`` or ``SwiGLUFFN`` from ``swiglu``,
   ``LayerScale`` from ``layer_scale``).
+- ``alternating``: the frame/global alternating loop every family runs, with its global steps
+  (full, K/V recording, cache tracking, past inputs for exported graphs); ``cache_layout``: which
+  blocks are global (``CacheLayout``).
 - ``patch_embed``, ``vit_encoder``: the DINOv2 ViT (``DinoViT``) with registers and pos-embed
   interpolation options.
 """
