@@ -241,11 +241,6 @@ class Pi3(nn.Module):
         point_tokens = None
         if heads is HeadSet.ALL:
             point_tokens = self.head_tokens(self.point_decoder, hidden, rope)
-        skip = self.num_register_tokens  # the heads read patch tokens only
-
-        camera_tokens = self.camera_decoder(hidden, rope)[:, skip:]
-        conf_tokens = None if heads is HeadSet.CAMERA else self.conf_decoder(hidden, rope)[:, skip:]
-        point_tokens = self.point_decoder(hidden, rope)[:, skip:] if heads is HeadSet.ALL else None
 
         conf = local_points = points = None
         # The final heads run in fp32 even under a caller's autocast (SVD/det have no bf16 kernels).
