@@ -4,6 +4,7 @@ its weights are external and shared between graphs."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 
@@ -57,7 +58,8 @@ def test_manifest_identity_equals_the_torch_backends(export: OnnxExport) -> None
     )
     assert manifest.extra_tokens_per_frame == extra_tokens == torch_info.extra_tokens_per_frame
     config = load_model(export.weights).model.config
-    assert manifest.config == config.model_dump() and manifest.config_hash == config.config_hash
+    assert manifest.config == json.loads(config.model_dump_json())  # JSON: tuples are lists
+    assert manifest.config_hash == config.config_hash
     assert (manifest.resolution, manifest.check_resolution) == ("dynamic", (126, 168))
     assert set(manifest.exporter) == {"torch", "onnx", "onnxscript", "onnx-ir"}
     # the export-time check: mapping and tracking through ORT against PyTorch, fp32 rounding only
