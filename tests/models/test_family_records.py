@@ -89,3 +89,12 @@ def test_the_registry_lists_each_family_once_under_its_name() -> None:
     assert list(FAMILIES) == ["pi3", "da3"]
     assert all(name == family.name for name, family in FAMILIES.items())
     assert len({family.model_type for family in FAMILIES.values()}) == len(FAMILIES)
+
+
+def test_every_family_has_a_preprocessing() -> None:
+    """The one thing a family provides outside its folder (layer 0): a missing line in
+    ``preprocess.FAMILY_PREPROCESSING`` would only show when a tracker prepares a frame."""
+    from kvtracker_sdk.preprocess import for_family
+
+    for name in FAMILIES:
+        assert for_family(name).name  # ConfigError when the family has none
