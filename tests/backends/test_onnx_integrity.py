@@ -91,7 +91,7 @@ def test_a_manifest_without_digests_is_refused(copied: Path) -> None:
         OnnxBackend(copied)
 
 
-def test_from_pretrained_exports_again_over_a_poisoned_cached_folder(
+def test_onnx_backend_exports_again_over_a_poisoned_cached_folder(
     golden_onnx_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from kvtracker_sdk.export_onnx import reuse
@@ -108,7 +108,7 @@ def test_from_pretrained_exports_again_over_a_poisoned_cached_folder(
         copy_export(golden_onnx_dir, folder)
 
     monkeypatch.setattr(reuse, "export_model", export)
-    backend = OnnxBackend.from_pretrained(weights, cache_dir=tmp_path, threads=1)
+    backend = reuse.onnx_backend(weights, cache_dir=tmp_path, threads=1)
     assert exports == [slot] and backend.folder == slot
     from kvtracker_sdk.backends import onnx_integrity
 
