@@ -80,9 +80,10 @@ def drive(
 
     With asynchronous mapping, ``settle`` waits for every rebuild after each frame (maps swap at
     known frames). ``pace`` lets rebuilds run beside the frame loop but waits for the mapper where
-    a slow worker would change the outcome: while the first map is building (frames would get no
-    pose), when a keyframe candidate is waiting (a newer one would replace it) and at the end (a
-    rebuild still running). The keyframes are then those of synchronous mapping, on any machine,
+    a slow worker would change the outcome: while the tracker is not TRACKING (the first map is
+    building, so frames get no pose; or track is lost, and a timeout policy would discard the
+    rebuild), when a keyframe candidate is waiting (a newer one would replace it) and at the end
+    (a rebuild still running). The keyframes are then those of synchronous mapping, on any machine,
     at any load.
     """
     session = session if session is not None else Session().listen(tracker)
@@ -90,7 +91,11 @@ def drive(
         result = tracker.push_frame(frame.image, timestamp=frame.timestamp, mask=frame.mask)
         session.results.append(result)
         session.truth.append(frame.T_world_cam)
-        waiting = result.state is TrackingState.MAPPING or tracker.map_status.keyframe_waiting
+        status = tracker.map_status
+        waiting = (
+            result.state is not TrackingState.TRACKING and status.rebuilding  # e.g. a timeout
+            or status.keyframe_waiting  # policy would otherwise discard it: speed-dependent
+        )
         if settle or (pace and waiting):
             assert tracker.wait_for_map(timeout=WAIT_S), "the mapping worker did not finish"
     if pace:  # a rebuild still running at the end belongs to the run (as in the CLI's loop)
