@@ -41,6 +41,7 @@ from kvtracker_sdk.models.layers.alternating import (
 )
 from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.cache_layout import CacheLayout
+from kvtracker_sdk.models.layers.precision import matmul_dtype
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 
@@ -169,7 +170,7 @@ class DA3Backbone(nn.Module):
             frames=views,
             tokens_per_frame=tokens.shape[2],
             rope=self.global_rope(tokens),
-            dtype=tokens.dtype,
+            dtype=matmul_dtype(tokens),  # the cache holds K/V in the matrix products' dtype
             device=tokens.device,
         )
 
@@ -206,7 +207,8 @@ class DA3Backbone(nn.Module):
 
     def global_rope(self, tokens: torch.Tensor) -> RopeTable:
         """One view's global-block table [T, head_dim] (repeat it per view for [N*T])."""
-        return self._rope(global_positions(tokens.shape[2], device=tokens.device), tokens.dtype)
+        positions = global_positions(tokens.shape[2], device=tokens.device)
+        return self._rope(positions, matmul_dtype(tokens))
 
     def _run(
         self,
@@ -258,7 +260,7 @@ class DA3Backbone(nn.Module):
             x,
             self.pretrained.blocks,
             start=self.alt_start,
-            local_rope=self._rope(local_positions, x.dtype),
+            local_rope=self._rope(local_positions, matmul_dtype(x)),
             global_step=global_step,
             taps=self.out_layers,
         )

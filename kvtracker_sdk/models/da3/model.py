@@ -28,10 +28,12 @@ Passes (inference code runs them under ``torch.no_grad()``):
 fastest step); CONFIDENCE and ALL also run DualDPT, which gives depth and confidence together.
 ``with_rays`` adds the auxiliary ray maps (not needed for tracking; DA3 itself discards them).
 
-Precision: ``set_precision(torch.bfloat16)`` casts the backbone to bf16 (RoPE angles rounded to
-bf16 as in the official code); the DualDPT head and the camera modules stay fp32, as the official
-bf16 inference runs them with autocast disabled. A caller's ``torch.autocast`` likewise reaches
-only the backbone.
+Precision: ``set_precision(torch.bfloat16)`` runs the official bf16 recipe (``torch.autocast``
+over the backbone; see ``models/layers/precision.py``) with the backbone's Linear/conv weights
+stored in bf16 once: matrix products and the K/V cache in bf16, the residual stream, norms,
+LayerScales and tokens in fp32, RoPE angles rounded to bf16 as in the official code. The DualDPT
+head and the camera modules stay fp32, as the official bf16 inference runs them with autocast
+disabled. A caller's ``torch.autocast`` likewise reaches only the backbone.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ from kvtracker_sdk.models.da3.dualdpt import DualDPT
 from kvtracker_sdk.models.da3.reference_view import ReferenceStrategy
 from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.patch_embed import IMAGENET_MEAN, IMAGENET_STD
+from kvtracker_sdk.models.layers.precision import cast_matmul_weights, trunk_autocast
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["DA3MapOutput", "DA3Output", "DepthAnything3"]
@@ -100,8 +103,8 @@ class DepthAnything3(nn.Module):
     # ------------------------------------------------------------------ properties
     @property
     def compute_dtype(self) -> torch.dtype:
-        """dtype of the backbone (the KV cache's dtype); the heads stay fp32."""
-        return self.backbone.pretrained.camera_token.dtype
+        """dtype of the backbone's matrix products (the KV cache's dtype); the heads stay fp32."""
+        return self.backbone.pretrained.patch_embed.proj.weight.dtype
 
     def tokens_per_frame(self, height: int, width: int) -> int:
         """Backbone tokens per view: 1 camera/cls token + (H/14)*(W/14) patches."""
@@ -109,9 +112,17 @@ class DepthAnything3(nn.Module):
         return 1 + (height // patch) * (width // patch)
 
     def set_precision(self, dtype: torch.dtype) -> DepthAnything3:
-        """Cast the backbone to ``dtype``; the DualDPT head and camera modules stay fp32."""
-        for name, module in self.named_children():
-            module.to(torch.float32 if name in _FP32_MODULES else dtype)
+        """Matrix products of the backbone in ``dtype``.
+
+        Its Linear/conv weights are cast to ``dtype`` and the passes run it under
+        ``torch.autocast(dtype)``; every other parameter, the DualDPT head and the camera modules
+        stay fp32.
+        """
+        self.to(torch.float32)
+        if dtype != torch.float32:
+            for name, module in self.named_children():
+                if name not in _FP32_MODULES:
+                    cast_matmul_weights(module, dtype)
         return self
 
     # ------------------------------------------------------------------ passes
@@ -139,19 +150,21 @@ class DepthAnything3(nn.Module):
                 camera_tokens = self.cam_enc(
                     extrinsics, intrinsics, (imgs.shape[-2], imgs.shape[-1])
                 )
-        features = self.backbone(
-            self.normalise(imgs),
-            strategy=ref_view_strategy,
-            camera_tokens=camera_tokens,
-            global_attn_mask=global_attn_mask,
-        )
+        with trunk_autocast(self.compute_dtype, imgs.device):
+            features = self.backbone(
+                self.normalise(imgs),
+                strategy=ref_view_strategy,
+                camera_tokens=camera_tokens,
+                global_attn_mask=global_attn_mask,
+            )
         return self._heads(features, (imgs.shape[-2], imgs.shape[-1]), heads, with_rays)
 
     def forward_map(
         self, imgs: torch.Tensor, *, heads: HeadSet = HeadSet.ALL, with_rays: bool = False
     ) -> DA3MapOutput:
         """Keyframes [B, N, 3, H, W] (reference = view 0) -> outputs and every global block's K/V."""
-        features, keys, values = self.backbone.forward_map(self.normalise(imgs))
+        with trunk_autocast(self.compute_dtype, imgs.device):
+            features, keys, values = self.backbone.forward_map(self.normalise(imgs))
         output = self._heads(features, (imgs.shape[-2], imgs.shape[-1]), heads, with_rays)
         tokens = self.tokens_per_frame(imgs.shape[-2], imgs.shape[-1])
         return DA3MapOutput(output, keys, values, tokens_per_frame=tokens)
@@ -169,7 +182,8 @@ class DepthAnything3(nn.Module):
             raise ImageShapeError(
                 f"tracking expects views [F, 3, H, W], got shape {tuple(imgs.shape)}"
             )
-        features = self.backbone.forward_track(self.normalise(imgs.unsqueeze(0))[0], cache)
+        with trunk_autocast(self.compute_dtype, imgs.device):
+            features = self.backbone.forward_track(self.normalise(imgs.unsqueeze(0))[0], cache)
         # [1, F, ...] -> [F, 1, ...]: the views are independent sequences
         per_view = BackboneOutput(
             features=[feature.transpose(0, 1) for feature in features.features],
@@ -180,13 +194,13 @@ class DepthAnything3(nn.Module):
 
     # ------------------------------------------------------------------ stages
     def normalise(self, imgs: torch.Tensor) -> torch.Tensor:
-        """[B, N, 3, H, W] in [0, 1] -> ImageNet-normalised, in the backbone's dtype."""
+        """[B, N, 3, H, W] in [0, 1] -> ImageNet-normalised, fp32 (the residual stream's dtype)."""
         if imgs.dim() != 5 or imgs.shape[2] != 3:
             raise ImageShapeError(f"expected images [B, N, 3, H, W], got shape {tuple(imgs.shape)}")
         # constants, not buffers: DA3 checkpoints hold no normalisation tensors
         mean = torch.tensor(IMAGENET_MEAN, device=imgs.device).view(1, 1, 3, 1, 1)
         std = torch.tensor(IMAGENET_STD, device=imgs.device).view(1, 1, 3, 1, 1)
-        return ((imgs.float() - mean) / std).to(self.compute_dtype)
+        return (imgs.float() - mean) / std
 
     def _heads(
         self, features: BackboneOutput, image_size: tuple[int, int], heads: HeadSet, with_rays: bool

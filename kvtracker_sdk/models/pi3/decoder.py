@@ -31,6 +31,7 @@ from kvtracker_sdk.models.layers.alternating import (
 from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.block import Block
 from kvtracker_sdk.models.layers.cache_layout import CacheLayout
+from kvtracker_sdk.models.layers.precision import matmul_dtype
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 from kvtracker_sdk.models.pi3.config import Pi3DecoderConfig
 
@@ -99,7 +100,7 @@ class Pi3Decoder(nn.ModuleList):
             frames=tokens.shape[1],
             tokens_per_frame=tokens.shape[2],
             rope=rope,
-            dtype=tokens.dtype,
+            dtype=matmul_dtype(tokens),  # the cache holds K/V in the matrix products' dtype
             device=tokens.device,
         )
         return self.run(tokens, rope, step)

@@ -21,13 +21,17 @@ Passes (all under ``torch.no_grad()`` in inference code):
 ``heads`` (``HeadSet``) selects the outputs: CAMERA computes only ``camera_poses`` (the fastest
 step), CONFIDENCE adds ``conf``, ALL adds ``local_points`` and ``points``.
 
-Precision: ``set_precision(torch.bfloat16)`` casts the encoder, decoder and head decoders to bf16
-(RoPE angles rounded to bf16 as in the official code) and keeps ``point_head``, ``conf_head`` and
-``camera_head`` in fp32, like the official bf16 inference path.
+Precision: ``set_precision(torch.bfloat16)`` runs the official bf16 recipe (``torch.autocast``
+over the encoder, decoder and head decoders; see ``models/layers/precision.py``) with the weights of
+their Linear/conv layers stored in bf16 once: matrix products and the K/V cache in bf16, the
+residual stream, norms, LayerScales and tokens in fp32, RoPE angles rounded to bf16 as in the
+official code. ``point_head``, ``conf_head`` and ``camera_head`` stay fp32 with autocast off.
+The exported graphs (``graphs.py``) are fp32 and run the same stages without autocast.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import torch
@@ -36,6 +40,7 @@ from torch import nn
 from kvtracker_sdk.errors import ImageShapeError
 from kvtracker_sdk.models.layers.attention import CacheBuffers
 from kvtracker_sdk.models.layers.patch_embed import IMAGENET_MEAN, IMAGENET_STD
+from kvtracker_sdk.models.layers.precision import cast_matmul_weights, matmul_dtype, trunk_autocast
 from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_table
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 from kvtracker_sdk.models.pi3.config import Pi3Config
@@ -116,8 +121,8 @@ class Pi3(nn.Module):
     # ------------------------------------------------------------------ properties
     @property
     def compute_dtype(self) -> torch.dtype:
-        """dtype of the encoder/decoder (the KV cache's dtype); the final heads stay fp32."""
-        return self.register_token.dtype
+        """dtype of the trunk's matrix products (the KV cache's dtype); the final heads stay fp32."""
+        return self.encoder.patch_embed.proj.weight.dtype
 
     @property
     def num_register_tokens(self) -> int:
@@ -129,10 +134,16 @@ class Pi3(nn.Module):
         return self.num_register_tokens + (height // patch) * (width // patch)
 
     def set_precision(self, dtype: torch.dtype) -> Pi3:
-        """Cast the trunk (encoder, decoder, head decoders) to ``dtype``; final heads stay fp32."""
-        for name, module in self.named_children():
-            module.to(torch.float32 if name in _FP32_HEADS else dtype)
-        self.register_token.data = self.register_token.data.to(dtype)
+        """Matrix products of the trunk (encoder, decoder, head decoders) in ``dtype``.
+
+        Their Linear/conv weights are cast to ``dtype`` and the passes run the trunk under
+        ``torch.autocast(dtype)``; every other parameter, and the final heads, stay fp32.
+        """
+        self.to(torch.float32)
+        if dtype != torch.float32:
+            for name, module in self.named_children():
+                if name not in _FP32_HEADS:
+                    cast_matmul_weights(module, dtype)
         return self
 
     # ------------------------------------------------------------------ passes
@@ -144,15 +155,17 @@ class Pi3(nn.Module):
         global_attn_mask: torch.Tensor | None = None,
     ) -> Pi3Output:
         """Official forward on ``imgs`` [B, N, 3, H, W] in [0, 1]; see the module docstring."""
-        tokens, rope = self._encode(imgs)
-        hidden = self.decoder(tokens, rope, global_attn_mask=global_attn_mask)
-        return self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
+        with self._trunk_precision(imgs):
+            tokens, rope = self._encode(imgs)
+            hidden = self.decoder(tokens, rope, global_attn_mask=global_attn_mask)
+            return self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
 
     def forward_map(self, imgs: torch.Tensor, *, heads: HeadSet = HeadSet.ALL) -> Pi3MapOutput:
         """Forward on keyframes [B, N, 3, H, W] that also returns every global block's K/V."""
-        tokens, rope = self._encode(imgs)
-        hidden, keys, values = self.decoder.forward_map(tokens, rope)
-        output = self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
+        with self._trunk_precision(imgs):
+            tokens, rope = self._encode(imgs)
+            hidden, keys, values = self.decoder.forward_map(tokens, rope)
+            output = self._heads(hidden, (imgs.shape[-2], imgs.shape[-1]), heads)
         return Pi3MapOutput(output, keys, values, tokens_per_frame=tokens.shape[2])
 
     def forward_track(
@@ -163,18 +176,19 @@ class Pi3(nn.Module):
             raise ImageShapeError(
                 f"tracking expects frames [F, 3, H, W], got shape {tuple(imgs.shape)}"
             )
-        tokens, rope = self._encode(imgs.unsqueeze(0))  # one sequence of F frames
-        hidden = self.decoder.forward_track(tokens, rope, cache)
-        # [1, F, T, 2*dim] -> [F, 1, T, 2*dim]: the frames are independent sequences
-        return self._heads(hidden.transpose(0, 1), (imgs.shape[-2], imgs.shape[-1]), heads)
+        with self._trunk_precision(imgs):
+            tokens, rope = self._encode(imgs.unsqueeze(0))  # one sequence of F frames
+            hidden = self.decoder.forward_track(tokens, rope, cache)
+            # [1, F, T, 2*dim] -> [F, 1, T, 2*dim]: the frames are independent sequences
+            return self._heads(hidden.transpose(0, 1), (imgs.shape[-2], imgs.shape[-1]), heads)
 
     # ------------------------------------------------------------------ stages
     # (public: the exported graphs, ``models/pi3/graphs.py``, are made of them)
     def encode(self, images: torch.Tensor) -> torch.Tensor:
-        """Frames [F, 3, H, W] RGB in [0, 1] -> patch tokens [F, h*w, dim] (ImageNet-normalised,
-        encoder in the compute dtype)."""
+        """Frames [F, 3, H, W] RGB in [0, 1] -> patch tokens [F, h*w, dim], fp32 (the residual
+        stream's dtype; under the trunk's autocast the patch conv runs in bf16)."""
         normalised = (images.float() - self.image_mean) / self.image_std
-        return self.encoder(normalised.to(self.compute_dtype))
+        return self.encoder(normalised)
 
     def decoder_tokens(self, patches: torch.Tensor) -> torch.Tensor:
         """Patch tokens [F, h*w, dim] -> decoder tokens [F, R + h*w, dim] (registers first)."""
@@ -209,6 +223,10 @@ class Pi3(nn.Module):
         depth = torch.exp(log_depth)
         return torch.cat((xy * depth, depth), dim=-1)
 
+    def _trunk_precision(self, imgs: torch.Tensor) -> contextlib.AbstractContextManager[object]:
+        """Autocast to the compute dtype around a pass (none in fp32); the final heads opt out."""
+        return trunk_autocast(self.compute_dtype, imgs.device)
+
     def _encode(self, imgs: torch.Tensor) -> tuple[torch.Tensor, RopeTable]:
         """[B, N, 3, H, W] in [0, 1] -> decoder tokens [B, N, T, dim] and one frame's RoPE table."""
         if imgs.dim() != 5 or imgs.shape[2] != 3:
@@ -220,7 +238,7 @@ class Pi3(nn.Module):
             height // patch,
             width // patch,
             self.decoder.head_dim,
-            dtype=tokens.dtype,
+            dtype=matmul_dtype(tokens),
             device=imgs.device,
         )
         return tokens.reshape(batch, frames, tokens.shape[1], -1), rope
@@ -232,7 +250,9 @@ class Pi3(nn.Module):
         grid_h, grid_w = height // self.config.patch_size, width // self.config.patch_size
         hidden = hidden.reshape(batch * frames, length, -1)
         head_dim = self.config.heads.embed_dim // self.config.heads.num_heads
-        rope = self.grid_rope(grid_h, grid_w, head_dim, dtype=hidden.dtype, device=hidden.device)
+        rope = self.grid_rope(
+            grid_h, grid_w, head_dim, dtype=matmul_dtype(hidden), device=hidden.device
+        )
 
         camera_tokens = self.head_tokens(self.camera_decoder, hidden, rope)
         conf_tokens = None
