@@ -17,6 +17,9 @@ point has ``--repeats`` clean samples, ``3 * --repeats`` rounds ran or ``--budge
 the tables use clean samples only (``*``: none was clean). ``--update`` re-measures some groups
 into an existing JSON, e.g. when a quieter spell comes.
 
+Frames are ``--size`` squares unless ``--pi3-size`` / ``--da3-size`` give a family its own H x W
+(the sizes the preprocessing gives a 640x480 frame: Pi3 at d=224 196x252, DA3 by default 378x504).
+
 Run from the repository root (about half an hour on a quiet 2-core CPU, most of it Pi3)::
 
     python -m benchmarks.model_families
@@ -103,10 +106,10 @@ def time_group(
 ) -> list[dict[str, Any]]:
     """One row per N: the tracking step against N random keyframes, camera head only, plus the
     tracker's default heads at ``--headline-keyframes``."""
-    layout, size = family_of(model).cache_layout(model), args.size
-    tokens = model.tokens_per_frame(size, size)
+    layout, (height, width) = family_of(model).cache_layout(model), frame_size(args, model)
+    tokens = model.tokens_per_frame(height, width)
     caches = {n: random_cache(layout, model.compute_dtype, n, tokens) for n in keyframes}
-    query = torch.rand(1, 3, size, size, generator=torch.Generator().manual_seed(0))
+    query = torch.rand(1, 3, height, width, generator=torch.Generator().manual_seed(0))
     rows = {n: {"keyframes": n, "cache_bytes": cache.nbytes} for n, cache in caches.items()}
     calls = []
     for n in keyframes:
@@ -125,8 +128,8 @@ def time_mapping(
     """``--map-repeats`` clean mapping passes on ``--map-keyframes`` frames (the minimum absorbs
     the first call's warm-up), then a check that their K/V make a cache laid out like
     ``random_cache``'s — so the timed tracking path reads the real layout."""
-    n, size, heads = args.map_keyframes, args.size, MAP_HEADS[family]
-    frames = torch.rand(1, n, 3, size, size, generator=torch.Generator().manual_seed(1))
+    n, (height, width), heads = args.map_keyframes, frame_size(args, model), MAP_HEADS[family]
+    frames = torch.rand(1, n, 3, height, width, generator=torch.Generator().manual_seed(1))
     samples, last = new_samples(), []
 
     def mapping() -> None:
@@ -164,7 +167,7 @@ def markdown_table(result: dict[str, Any], threads: int, clock: str) -> str:
 
         step = best(rows.get(headline, {}).get("track_camera"), clock, group["allowed_others"])
         cells = [
-            f"{group['model']} ({group['licence']})",
+            f"{group['model']} ({group['licence']}), {group['size'][0]}×{group['size'][1]}",
             group["dtype"],
             *(seconds(rows.get(n, {}).get("track_camera")) for n in ns),
             "—" if step is None else f"{1 / step[0]:.1f}",
@@ -182,6 +185,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     add("--models", choices=list(MODELS), nargs="+", default=["da3-small", "da3-base", "pi3-large"])
     add("--dtypes", choices=sorted(DTYPES), nargs="+", default=["bf16", "fp32"])
     add("--size", type=int, default=224, help="square side in px, multiple of 14")
+    add("--pi3-size", type=int, nargs=2, metavar=("H", "W"),
+        help="Pi3 frames H x W (default --size square), e.g. 196 252: Pi3 at d=224 for 640x480")  # fmt: skip
+    add("--da3-size", type=int, nargs=2, metavar=("H", "W"),
+        help="DA3 frames H x W (default --size square), e.g. 378 504: DA3's default for 640x480")  # fmt: skip
     add("--keyframes", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32])
     add("--pi3-keyframes", type=int, nargs="+", default=[1, 8, 32], help="N for Pi3 models")
     add("--headline-keyframes", type=int, default=8, help="N of the FPS and +conf columns")
@@ -205,6 +212,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     return args
 
 
+def frame_size(args: argparse.Namespace, model: Any) -> tuple[int, int]:
+    """(H, W) of the frames for ``model``'s family: ``--pi3-size`` / ``--da3-size``, else square."""
+    chosen = args.pi3_size if isinstance(model, Pi3) else args.da3_size
+    return (chosen[0], chosen[1]) if chosen else (args.size, args.size)
+
+
 def run_group(
     model: Any, name: str, dtype: str, threads: int, args: argparse.Namespace
 ) -> dict[str, Any]:
@@ -213,11 +226,13 @@ def run_group(
     torch.set_num_threads(threads)
     cpus = os.cpu_count() or 1
     allowed = max(0, cpus - threads) + args.max_others
-    tokens = model.tokens_per_frame(args.size, args.size)
+    size = frame_size(args, model)
+    tokens = model.tokens_per_frame(*size)
     layout = family_of(model).cache_layout(model)
     group: dict[str, Any] = {
         "model": name, "family": family, "licence": MODELS[name][1], "dtype": dtype,
         "threads": threads, "params": sum(p.numel() for p in model.parameters()),
+        "size": list(size),
         "tokens_per_frame": tokens,
         "cache_bytes_per_keyframe": tokens * layout.bytes_per_token(model.compute_dtype),
         "allowed_others": allowed, "others_before": wait_for_quiet(allowed, args.max_wait),
@@ -259,7 +274,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Run the benchmark; print the tables, write the JSON; return the JSON content."""
     args = parse_args(argv)
     result: dict[str, Any] = {
-        "resolution": [args.size, args.size], "clock": args.clock, "keyframes": args.keyframes,
+        "resolution": [args.size, args.size], "pi3_size": args.pi3_size, "da3_size": args.da3_size,
+        "clock": args.clock, "keyframes": args.keyframes,
         "headline_keyframes": args.headline_keyframes, "map_keyframes": args.map_keyframes,
         "warmup": args.warmup, "repeats": args.repeats, "budget_seconds": args.budget,
         "max_others": args.max_others, "threads": args.threads,
@@ -291,7 +307,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     json_path.write_text(json.dumps(result, indent=2) + "\n")
     for threads in result["threads"]:
         for clock in dict.fromkeys((args.clock, "cpu")):
-            print(f"\ntracking step at {args.size}² in seconds (best-of {clock}), {threads} "
+            print(f"\ntracking step in seconds (best-of {clock}), {threads} "
                   f"thread(s); camera head unless noted; * = every sample contended\n")  # fmt: skip
             print(markdown_table(result, threads, clock))
     for check in result["targets"]:

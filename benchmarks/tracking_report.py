@@ -77,7 +77,7 @@ def markdown_table(result: dict[str, Any], heads: str) -> str:
 
 def print_tables(result: dict[str, Any]) -> None:
     """Print one markdown table per head set, with a heading naming the run."""
-    size = result["resolution"][0]
+    size = "x".join(map(str, dict.fromkeys(result["resolution"])))  # "308" or "196x252"
     for heads in result["heads"]:
         print(
             f"\n{result['config_name']} @ {size} px, {result['dtype']}, heads={heads}, "
@@ -118,7 +118,7 @@ def plot_fps(result: dict[str, Any], path: Path) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("keyframes N")
     ax.set_ylabel("frames per second")
-    size = result["resolution"][0]
+    size = "x".join(map(str, dict.fromkeys(result["resolution"])))  # "308" or "196x252"
     ax.set_title(f"Pi3 {result['config_name']} @ {size} px, {result['dtype']}, "
                  f"{_threads(result)} (dotted: FLOP model)", fontsize=9)  # fmt: skip
     ax.grid(True, which="both", alpha=0.3)

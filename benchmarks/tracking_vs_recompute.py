@@ -17,9 +17,10 @@ Run from the repository root::
 
     python -m benchmarks.tracking_vs_recompute --config mid --size 308 --dtype bf16
     python -m benchmarks.tracking_vs_recompute --config large --size 224 --max-recompute 16
+    python -m benchmarks.tracking_vs_recompute --config large --size 196 252  # H W: d=224, 4:3
 
 Writes ``benchmarks/results/<name>.json`` and ``<name>.png`` (``--name``, default
-``<config>_<size>_<dtype>``).
+``<config>_<size>_<dtype>``, size ``S`` or ``HxW``).
 """
 
 from __future__ import annotations
@@ -107,14 +108,16 @@ def random_cache(model: Pi3, keyframes: int, tokens_per_frame: int) -> KVCache:
 
 
 @torch.no_grad()
-def check_real_path(model: Pi3, size: int, dtype_name: str, keyframes: int = 2) -> float:
+def check_real_path(
+    model: Pi3, size: tuple[int, int], dtype_name: str, keyframes: int = 2
+) -> float:
     """Build a cache by ``forward_map``; check it matches ``random_cache`` and tracks correctly.
 
     Returns max |pose difference| between tracking the query through the real cache and the
     full forward on [keyframes, query] under the keyframe/query mask. Raises RuntimeError
     when the buffers differ or the difference exceeds ``CHECK_TOLERANCE``.
     """
-    imgs = torch.rand(1, keyframes + 1, 3, size, size, generator=torch.Generator().manual_seed(7))
+    imgs = torch.rand(1, keyframes + 1, 3, *size, generator=torch.Generator().manual_seed(7))
     mapped = model.forward_map(imgs[:, :keyframes], heads=HeadSet.CAMERA)
     tokens = mapped.tokens_per_frame
     real = KVCache.from_layers(
@@ -158,13 +161,13 @@ def time_call(fn: Callable[[], object], warmup: int, repeats: int, budget: float
 def time_tracking(
     model: Pi3, query: torch.Tensor, args: argparse.Namespace
 ) -> list[dict[str, Any]]:
-    """One row per N: tracking ``query`` [1, 3, S, S] against N random keyframes, per head set.
+    """One row per N: tracking ``query`` [1, 3, H, W] against N random keyframes, per head set.
 
     The calls go round-robin (every N and head set once per round, ``--warmup`` + ``--repeats``
     rounds) so that a busy spell on a shared machine hits all N alike instead of one N's points.
     """
-    size = query.shape[-1]
-    tokens = model.tokens_per_frame(size, size)
+    height, width = query.shape[-2:]
+    tokens = model.tokens_per_frame(height, width)
     caches = {n: random_cache(model, n, tokens) for n in args.keyframes}
     rows: dict[int, dict[str, Any]] = {
         n: {"keyframes": n, "cache_bytes": cache.nbytes} for n, cache in caches.items()
@@ -181,17 +184,17 @@ def time_tracking(
     for n, row in rows.items():
         for name in args.heads:
             row[f"track_{name}_flops"] = tracking_step_flops(
-                model.config, size, size, n, HEADS[name]
+                model.config, height, width, n, HEADS[name]
             ).to_dict()
             row[f"recompute_{name}_flops"] = recompute_flops(
-                model.config, size, size, n + 1, HEADS[name]
+                model.config, height, width, n + 1, HEADS[name]
             ).to_dict()
     return list(rows.values())
 
 
 @torch.no_grad()
 def time_recompute(frames: torch.Tensor, model: Pi3, args: argparse.Namespace) -> dict[str, Any]:
-    """The full forward on ``frames`` [1, N+1, 3, S, S], per head set."""
+    """The full forward on ``frames`` [1, N+1, 3, H, W], per head set."""
     # a recompute costs ~N+1 tracking steps: a warmup call only for short ones
     warmup = args.warmup if frames.shape[1] <= 9 else 0
     return {
@@ -206,7 +209,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", choices=sorted(PRESETS), default="mid")
     parser.add_argument("--dtype", choices=sorted(DTYPES), default="bf16")
-    parser.add_argument("--size", type=int, default=308, help="square side in px, multiple of 14")
+    parser.add_argument("--size", type=int, nargs="+", default=[308], metavar="PX",
+                        help="S (a square) or H W in px, multiples of 14")  # fmt: skip
     parser.add_argument("--keyframes", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32, 64])
     parser.add_argument("--max-recompute", type=int, default=32, help="largest N to recompute")
     parser.add_argument("--heads", choices=sorted(HEADS), nargs="+", default=["camera", "all"])
@@ -217,7 +221,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--clock", choices=["wall", "cpu"], default="wall")
     parser.add_argument("--name", help="output file stem (default <config>_<size>_<dtype>)")
     parser.add_argument("--out-dir", type=Path, default=RESULTS)
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if len(args.size) > 2:
+        parser.error("--size takes S or H W")
+    return args
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -228,23 +235,24 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     config = PRESETS[args.config]()
     dtype = DTYPES[args.dtype]
     model = build_model(config, dtype)
-    size = args.size
-    tokens = model.tokens_per_frame(size, size)
+    size = (args.size[0], args.size[-1])  # (H, W)
+    tokens = model.tokens_per_frame(*size)
     print(f"config {args.config}: {config.model_dump_json()}")
-    print(f"{args.dtype}, {size}x{size} px, T={tokens} tokens/frame, {args.threads} threads, "
+    print(f"{args.dtype}, {size[0]}x{size[1]} px, T={tokens} tokens/frame, {args.threads} threads, "
           f"torch {torch.__version__}, load average {load_start}")  # fmt: skip
     check_error = check_real_path(model, size, args.dtype)
     print(f"real-path check: forward_track(forward_map cache) vs masked forward, "
           f"max |pose diff| {check_error:.2e}")  # fmt: skip
 
-    name = args.name or f"{args.config}_{size}_{args.dtype}"
+    size_name = str(size[0]) if size[0] == size[1] else f"{size[0]}x{size[1]}"
+    name = args.name or f"{args.config}_{size_name}_{args.dtype}"
     args.out_dir.mkdir(parents=True, exist_ok=True)
     json_path = args.out_dir / f"{name}.json"
     result: dict[str, Any] = {
         "config_name": args.config,
         "config": config.model_dump(),
         "dtype": args.dtype,
-        "resolution": [size, size],
+        "resolution": list(size),
         "tokens_per_frame": tokens,
         "heads": args.heads,
         "clock": args.clock,
@@ -261,13 +269,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         "rows": [],
     }  # fmt: skip
     generator = torch.Generator().manual_seed(0)
-    query = torch.rand(1, 3, size, size, generator=generator)
+    query = torch.rand(1, 3, *size, generator=generator)
     result["rows"] = time_tracking(model, query, args)
     print(f"tracking timed, load average {os.getloadavg()}", flush=True)
     for row in result["rows"]:
         n = row["keyframes"]
         if n <= args.max_recompute:
-            frames = torch.rand(1, n + 1, 3, size, size, generator=generator)
+            frames = torch.rand(1, n + 1, 3, *size, generator=generator)
             row |= time_recompute(frames, model, args)
         row["load_average"] = os.getloadavg()
         print(f"N={n} done, load average {row['load_average']}", flush=True)

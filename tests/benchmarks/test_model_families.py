@@ -17,10 +17,12 @@ from benchmarks.model_families import (
 from kvtracker_sdk.models.registry import family_of
 
 SIZE = 56  # 4x4 patches: T = 1 + 16 tokens per DA3 frame, 5 + 16 per Pi3 frame
+DA3_SIZE = (42, 70)  # --da3-size: 3x5 patches, T = 1 + 15 (Pi3 stays SIZE x SIZE)
 
 
 def test_main_writes_json_and_table(tmp_path: Path) -> None:
     argv = ["--models", "da3-tiny", "pi3-tiny", "--dtypes", "fp32", "bf16", "--size", str(SIZE),
+            "--da3-size", *map(str, DA3_SIZE),
             "--keyframes", "1", "2", "--pi3-keyframes", "1", "2", "--headline-keyframes", "2",
             "--map-keyframes", "2", "--map-repeats", "1", "--warmup", "0", "--repeats", "1",
             "--threads", "1", "--max-wait", "0", "--max-others", "1000",
@@ -34,7 +36,10 @@ def test_main_writes_json_and_table(tmp_path: Path) -> None:
     assert set(groups) == {(m, d) for m in ("da3-tiny", "pi3-tiny") for d in ("fp32", "bf16")}
     for (name, _), group in groups.items():
         assert group["threads"] == 1 and group["family"] == name[:3]
-        assert group["tokens_per_frame"] == (1 if name.startswith("da3") else 5) + 16
+        if name.startswith("da3"):
+            assert group["size"] == list(DA3_SIZE) and group["tokens_per_frame"] == 1 + 15
+        else:
+            assert group["size"] == [SIZE, SIZE] and group["tokens_per_frame"] == 5 + 16
         # with --max-others 1000 every round is clean: exactly --repeats samples per point
         rows = group["rows"]
         assert [row["keyframes"] for row in rows] == [1, 2]

@@ -15,17 +15,19 @@ from benchmarks.tracking_vs_recompute import PRESETS, build_model, main, random_
 from kvtracker_sdk.types import HeadSet
 
 SIZE = 56  # 4x4 patches: T = 5 + 16 tokens per frame
+FRAME = (42, 56)  # --size H W: 3x4 patches, T = 5 + 12
 
 
 def test_main_writes_json_and_plot(tmp_path: Path) -> None:
-    argv = ["--config", "tiny", "--size", str(SIZE), "--dtype", "fp32", "--keyframes", "1", "2",
+    argv = ["--config", "tiny", "--size", *map(str, FRAME), "--dtype", "fp32", "--keyframes", "1", "2",
             "--max-recompute", "1", "--warmup", "0", "--repeats", "1", "--threads", "1",
             "--name", "smoke", "--out-dir", str(tmp_path)]  # fmt: skip
     result = main(argv)
 
     written = json.loads((tmp_path / "smoke.json").read_text())
     assert written == json.loads(json.dumps(result))
-    assert written["resolution"] == [SIZE, SIZE] and written["threads"] == 1
+    assert written["resolution"] == list(FRAME) and written["threads"] == 1
+    assert written["tokens_per_frame"] == 5 + 12
     assert written["real_path_check_max_pose_diff"] <= 1e-3
     assert [row["keyframes"] for row in written["rows"]] == [1, 2]
     for row in written["rows"]:
