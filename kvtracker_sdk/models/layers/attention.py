@@ -157,6 +157,8 @@ class Attention(nn.Module):
         )
         q, k, v = qkv.unbind(0)
         q, k = self.q_norm(q), self.k_norm(k)
+        if q.dtype != v.dtype:  # CUDA autocast norms in fp32: K/V share a dtype (official Pi3)
+            q, k = q.to(v.dtype), k.to(v.dtype)
         if rope is not None:
             q, k = rope.apply(q), rope.apply(k)
         return q, k, v
