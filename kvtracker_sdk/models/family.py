@@ -71,9 +71,9 @@ class Network(Protocol):
     def config(self) -> Any: ...  # pydantic: ``config_hash``, ``patch_size``, ``model_dump()``
 
     @property
-    def compute_dtype(self) -> torch.dtype: ...  # the trunk's dtype: the KV cache's
+    def compute_dtype(self) -> torch.dtype: ...  # the trunk's matrix products': the KV cache's
 
-    def set_precision(self, dtype: torch.dtype) -> Any: ...  # trunk to ``dtype``; returns self
+    def set_precision(self, dtype: torch.dtype) -> Any: ...  # trunk matmuls in ``dtype``; returns self
 
     def tokens_per_frame(self, height: int, width: int) -> int: ...
 
