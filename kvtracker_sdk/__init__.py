@@ -44,6 +44,7 @@ from kvtracker_sdk.errors import (
     TrajectoryError,
     WeightsNotFoundError,
 )
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.types import (
     FrameResult,
@@ -95,6 +96,7 @@ __all__ = [
     "BackendMismatchError",
     "CacheError",
     "CacheLayout",
+    "Camera",
     "CheckpointMismatchError",
     "ConfigError",
     "EvaluationError",
@@ -104,6 +106,7 @@ __all__ = [
     "ImageDtypeError",
     "ImageShapeError",
     "InputError",
+    "IntrinsicsSource",
     "KVCache",
     "KVTrackerError",
     "Keyframe",

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import InputError, MappingFailedError, TrackingFailedError
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import (
     check_rigid,
     quat_wxyz_from_rotation,
@@ -165,7 +166,9 @@ class FrameResult:
     no map yet, and flagged by ``pose_valid=False`` while relocalising. ``timings_ms`` holds the
     per-stage wall times (preprocess, track, map, total, ...). ``error`` is set when the backend
     failed to track this frame (then ``pose`` is None and ``pose_valid`` False); the tracker
-    carries on with the next frame.
+    carries on with the next frame. ``intrinsics`` is the camera of the *input* image (its pixels, undistorted if the given camera had distortion), and
+    ``intrinsics_source`` says whether it was given, predicted by the network (DA3) or
+    estimated from the network's local points (Pi3); both None when none is known yet.
     """
 
     frame_index: int
@@ -180,6 +183,8 @@ class FrameResult:
     timings_ms: Mapping[str, float] = field(default_factory=dict)
     extras: Mapping[str, Any] = field(default_factory=dict)
     error: TrackingFailedError | None = None
+    intrinsics: Camera | None = None
+    intrinsics_source: IntrinsicsSource | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "timings_ms", _frozen_mapping(self.timings_ms))

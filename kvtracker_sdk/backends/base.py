@@ -43,9 +43,11 @@ class MapResult:
     local_points: np.ndarray  # [N, H, W, 3] float32, camera frame (OpenCV axes), raw scale
     cache: KVCache
     timings_ms: Mapping[str, float] = field(default_factory=dict)
+    # [N, 3, 3] float64 pixels of the model-resolution images, when the network predicts them
+    intrinsics: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for array in (self.poses, self.confidence, self.local_points):
+        for array in (self.poses, self.confidence, self.local_points, self.intrinsics):
             _readonly(array)
 
     @property
@@ -64,6 +66,7 @@ class MapResult:
         info: BackendInfo,
         image_size: tuple[int, int],
         map_ms: float,
+        intrinsics: np.ndarray | None = None,
     ) -> MapResult:
         """A mapping pass's per-keyframe outputs (all heads) and the K/V of its global layers
         [1, heads, N*T, head_dim] -> a ``MapResult`` whose cache lists keyframes 0..N-1."""
@@ -75,7 +78,10 @@ class MapResult:
             tokens_per_frame=info.tokens_per_frame(*image_size),
             keyframe_ids=range(poses.shape[0]),
         )
-        return cls(poses, confidence, local_points, cache, timings_ms={"map": map_ms})
+        return cls(
+            poses, confidence, local_points, cache, timings_ms={"map": map_ms},
+            intrinsics=intrinsics,
+        )
 
 
 @dataclass(frozen=True)
@@ -87,9 +93,11 @@ class TrackResult:
     confidence_map: np.ndarray | None = None  # [H, W] float32 in [0, 1]
     local_points: np.ndarray | None = None  # [H, W, 3] float32 camera frame
     timings_ms: Mapping[str, float] = field(default_factory=dict)
+    # [3, 3] float64 pixels of the model-resolution image, when the network predicts them (DA3)
+    intrinsics: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for array in (self.pose, self.confidence_map, self.local_points):
+        for array in (self.pose, self.confidence_map, self.local_points, self.intrinsics):
             _readonly(array)
 
 

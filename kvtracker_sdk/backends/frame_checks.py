@@ -1,6 +1,7 @@
 """Checks every backend makes on its inputs, with the SDK's typed errors.
 
-Frames arrive at the model resolution as uint8 RGB [N, H, W, 3] (``backends/base.py``); masks
+Frames arrive at the model resolution as uint8 RGB [N, H, W, 3] (``backends/base.py``; float32
+RGB in [0, 1] is accepted too, so research code can feed exact float inputs); masks
 are bool [N, H, W]; a cache must have the backend's layout, dtype, device and tokens per frame.
 A failed check raises before anything runs, so the caller's cache and map are untouched.
 """
@@ -23,13 +24,17 @@ __all__ = ["check_cache", "check_frames", "check_masks"]
 
 
 def check_frames(images: object, patch_size: int) -> np.ndarray:
-    """``images`` as a uint8 [N, H, W, 3] array with N >= 1 and H, W multiples of ``patch_size``."""
+    """``images`` as a uint8 (or float32 in [0, 1]) [N, H, W, 3] array with N >= 1 and H, W
+    multiples of ``patch_size``."""
     if not isinstance(images, np.ndarray):
         raise ImageDtypeError(f"images must be a numpy uint8 array, got {type(images).__name__}")
     if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] == 0:
         raise ImageShapeError(f"expected images [N, H, W, 3] with N >= 1, got shape {images.shape}")
-    if images.dtype != np.uint8:
-        raise ImageDtypeError(f"images must be uint8 RGB, got {images.dtype}")
+    if images.dtype == np.float32:  # research use (golden checks): float RGB in [0, 1]
+        if not (np.isfinite(images).all() and images.min() >= 0.0 and images.max() <= 1.0):
+            raise ImageDtypeError("float32 images must be finite RGB values in [0, 1]")
+    elif images.dtype != np.uint8:
+        raise ImageDtypeError(f"images must be uint8 RGB (or float32 in [0, 1]), got {images.dtype}")
     height, width = images.shape[1:3]
     if height % patch_size or width % patch_size or height < patch_size or width < patch_size:
         raise ImageShapeError(

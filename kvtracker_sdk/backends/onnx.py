@@ -115,6 +115,7 @@ class OnnxBackend:
             info=self._info,
             image_size=images.shape[1:3],
             map_ms=(time.perf_counter() - start) * 1e3,
+            intrinsics=outputs.intrinsics,
         )
 
     def track(
@@ -154,7 +155,8 @@ class OnnxBackend:
     def _to_input(self, images: np.ndarray) -> np.ndarray:
         """uint8 [N, H, W, 3] -> float32 [N, 3, H, W] in [0, 1], C-contiguous."""
         frames = check_frames(images, self._info.patch_size)
-        return np.ascontiguousarray(frames.transpose(0, 3, 1, 2), dtype=np.float32) / 255.0
+        planar = np.ascontiguousarray(frames.transpose(0, 3, 1, 2), dtype=np.float32)
+        return planar if frames.dtype == np.float32 else planar / 255.0
 
     @staticmethod
     def _track_result(outputs: FrameOutputs, timings: dict[str, float]) -> TrackResult:
@@ -165,4 +167,5 @@ class OnnxBackend:
             confidence_map=confidence_map,
             local_points=None if outputs.local_points is None else outputs.local_points[0],
             timings_ms=timings,
+            intrinsics=None if outputs.intrinsics is None else outputs.intrinsics[0],
         )

@@ -42,11 +42,13 @@ from kvtracker_sdk.backends.simulated_scene import (
     SimulatedCamera,
     SimulatedFrame,
     SimulatedScene,
+    camera_matrix,
     decode_frame_index,
     pixel_rays,
 )
 from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
 from kvtracker_sdk.errors import BackendError, CacheError, ConfigError
+from kvtracker_sdk.geometry.pixel_transform import PixelTransform
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.types import HeadSet
 
@@ -79,6 +81,7 @@ class SimulatedBackend:
         lost_confidence: float = 0.1,
         map_confidence_drops: Sequence[tuple[int, int]] = (),
         seed: int = 0,
+        camera_size: tuple[int, int] | None = None,
     ) -> None:
         if min(translation_noise_m, rotation_noise_deg, pass_jitter) < 0:
             raise ConfigError("noise levels must be >= 0")
@@ -94,6 +97,8 @@ class SimulatedBackend:
         self.lost_confidence = float(lost_confidence)
         self.map_confidence_drops = tuple((int(a), int(b)) for a, b in map_confidence_drops)
         self.seed = int(seed)
+        # (H, W) of the rendered frames: model-resolution rays then follow their resize exactly
+        self.camera_size = None if camera_size is None else (int(camera_size[0]), int(camera_size[1]))
         # a frame's error is fixed (drawn once per frame index); passes add jitter on top
         rng = np.random.default_rng((self.seed, 0))
         self._frame_noise = rng.standard_normal((len(ground_truth), 6))
@@ -175,6 +180,16 @@ class SimulatedBackend:
     def close(self) -> None:
         """Nothing to release (idempotent)."""
 
+    def model_K(self, size: tuple[int, int]) -> np.ndarray:
+        """3x3 K of the model-resolution images (H, W) = ``size`` that this backend answers for:
+        ``camera_matrix(camera_size)`` carried through the resize to ``size`` when
+        ``camera_size`` is set, else ``camera_matrix(size)``."""
+        if self.camera_size is None or self.camera_size == tuple(size):
+            return camera_matrix(size)
+        return PixelTransform.resize(self.camera_size, size).apply_to_K(
+            camera_matrix(self.camera_size)
+        )
+
     # ------------------------------------------------------------------ demo helpers
     def camera(
         self, size: tuple[int, int] = (240, 320), *, textured: bool = True
@@ -214,6 +229,7 @@ class SimulatedBackend:
             self.scene.object_centre.tolist(), self.scene.object_radius,
             self.translation_noise_m, self.rotation_noise_rad, self.pass_jitter, self.confidence,
             self.loss_segments, self.lost_confidence, self.map_confidence_drops, self.seed,
+            *(() if self.camera_size is None else (self.camera_size,)),
         )).encode())
         return BackendInfo(
             backend="simulated",
@@ -280,7 +296,7 @@ class SimulatedBackend:
         """[H, W, 3] float32 camera rays with z = 1."""
         rays = self._rays.get(size)
         if rays is None:
-            rays = self._rays[size] = pixel_rays(size).astype(np.float32)
+            rays = self._rays[size] = pixel_rays(size, self.model_K(size)).astype(np.float32)
         return rays
 
     def _confidence_pattern(self, size: tuple[int, int]) -> np.ndarray:
@@ -302,7 +318,9 @@ class SimulatedBackend:
             if depth is not None:
                 self._depths.move_to_end(key)
                 return depth
-        depth64, _ = self.scene.depth(self.ground_truth.poses[frame], pixel_rays(size))
+        depth64, _ = self.scene.depth(
+            self.ground_truth.poses[frame], pixel_rays(size, self.model_K(size))
+        )
         depth = depth64.astype(np.float32)
         with self._lock:
             self._depths[key] = depth

@@ -11,7 +11,10 @@ depth in, and a camera whose images carry their frame index.
   a frame). A flat code survives resizing, cropping and masking; blue holds an optional texture.
 
 Pinhole intrinsics scale with the image: fx = fy = 0.81 W (TUM's 520 px at 640 px), principal
-point at the centre. Object-mode crops change the true intrinsics; the simulation ignores that.
+point at the centre (``camera_matrix``). ``SimulatedBackend(camera_size=(H, W))`` makes the
+model-resolution geometry exactly that of resized H x W frames (the resize is not isotropic after
+rounding to patches); object-mode crops change the true intrinsics and the simulation ignores
+that.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ __all__ = [
     "decode_frame_index",
     "encode_frame_index",
     "look_at",
+    "camera_matrix",
     "orbit",
     "pixel_rays",
 ]
@@ -121,12 +125,23 @@ def orbit(
     return GroundTruth(np.arange(num_frames) / rate_hz, poses)
 
 
-def pixel_rays(size: tuple[int, int]) -> np.ndarray:
-    """[H, W, 3] camera-frame rays with z = 1 (so a ray times the depth is the local point)."""
+def camera_matrix(size: tuple[int, int]) -> np.ndarray:
+    """3x3 K of the simulated camera at ``size`` = (H, W): fx = fy = 0.81 W, principal point at
+    the image centre ((W - 1) / 2, (H - 1) / 2 with pixel centres at integers)."""
     height, width = size
     focal = FOCAL_PER_WIDTH * width
-    u = (np.arange(width) + 0.5 - width / 2.0) / focal
-    v = (np.arange(height) + 0.5 - height / 2.0) / focal
+    return np.array(
+        [[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+    )
+
+
+def pixel_rays(size: tuple[int, int], K: np.ndarray | None = None) -> np.ndarray:
+    """[H, W, 3] camera-frame rays with z = 1 (so a ray times the depth is the local point) of
+    an image of ``size`` = (H, W) with intrinsics ``K`` (default: ``camera_matrix(size)``)."""
+    height, width = size
+    K = camera_matrix(size) if K is None else np.asarray(K, dtype=np.float64)
+    u = (np.arange(width) - K[0, 2]) / K[0, 0]
+    v = (np.arange(height) - K[1, 2]) / K[1, 1]
     rays = np.empty((height, width, 3))
     rays[..., 0] = u[None, :]
     rays[..., 1] = v[:, None]

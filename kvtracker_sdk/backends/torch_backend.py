@@ -182,6 +182,7 @@ class TorchBackend:
             info=self._info,
             image_size=images.shape[1:3],
             map_ms=(time.perf_counter() - start) * 1e3,
+            intrinsics=outputs.intrinsics,
         )
 
     def track(
@@ -224,6 +225,8 @@ class TorchBackend:
         # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
         writable = images if images.flags.writeable else images.copy()
         tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
+        if images.dtype == np.float32:  # already in [0, 1] (check_frames)
+            return tensor.permute(0, 3, 1, 2).contiguous()
         return tensor.permute(0, 3, 1, 2).float().div_(255.0)
 
     @staticmethod
@@ -236,4 +239,5 @@ class TorchBackend:
             confidence_map=confidence_map,
             local_points=local_points,
             timings_ms=timings,
+            intrinsics=None if output.intrinsics is None else output.intrinsics[index],
         )

@@ -2,7 +2,7 @@
 
 Reads and validates the header (never the tensor data, so it is instant on a large map and safe
 on an untrusted file) and prints the model that made the map (a map loads only with a backend of
-the same fingerprint), its resolution, keyframes, cache size and mode. ``--json`` prints the
+the same fingerprint), its resolution, keyframes, cache size, mode and the camera's intrinsics (if saved). ``--json`` prints the
 same as one JSON object.
 """
 
@@ -53,6 +53,10 @@ def describe_map(info: MapInfo, path: Path) -> dict[str, Any]:
         "cache_bytes": info.cache_nbytes,
         "file_bytes": info.file_size or path.stat().st_size,
         "user_metadata": dict(info.user_metadata),
+        "camera": None if info.camera is None else {
+            **info.camera.to_dict(),
+            "source": None if info.camera_source is None else info.camera_source.value,
+        },
     }
 
 
@@ -73,6 +77,12 @@ def _text(facts: dict[str, Any]) -> str:
         f"tokens/frame",
         f"file       {facts['file_bytes'] / 1e6:.1f} MB",
     ]
+    camera = facts["camera"]
+    if camera is not None:
+        lines.append(
+            f"camera     fx {camera['fx']:.6g} fy {camera['fy']:.6g} cx {camera['cx']:.6g} "
+            f"cy {camera['cy']:.6g} at {camera['width']}x{camera['height']} px ({camera['source']})"
+        )
     if facts["user_metadata"]:
         lines.append(f"metadata   {facts['user_metadata']}")
     return "\n".join(lines)

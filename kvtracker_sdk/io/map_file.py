@@ -41,6 +41,7 @@ from kvtracker_sdk.errors import (
     MapIOError,
     MapModelMismatchError,
 )
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_write
 from kvtracker_sdk.io.map_format import (
     MapInfo,
@@ -178,16 +179,21 @@ def save_map(
     tracker_config_json: str,
     mode: str,
     sdk_version: str = __version__,
+    camera: Camera | None = None,
+    camera_source: IntrinsicsSource | None = None,
 ) -> MapInfo:
     """Write ``keyframe_map`` to ``path`` atomically and return the written header.
 
     ``backend_info`` is the backend that made the cache (its fingerprint and layout go into the
     header); ``tracker_config_json`` is the tracker's configuration as a JSON object; ``mode``
-    the tracking mode ("scene", "object"). The cache is snapshotted under its lock. If anything
-    fails, ``path`` still holds its previous content and no temporary file remains.
+    the tracking mode ("scene", "object"); ``camera`` the session's input-image intrinsics
+    (optional; ``camera_source`` says where they came from). The cache is snapshotted under its
+    lock. If anything fails, ``path`` still holds its previous content and no temporary file
+    remains.
     """
     target = Path(path)
     info = _saved_info(keyframe_map, backend_info, tracker_config_json, mode, sdk_version)
+    info = replace(info, camera=camera, camera_source=camera_source if camera else None)
     tensors = map_to_tensors(keyframe_map, info.resolution)
     info = replace(info, tensor_sha256=sha256_of(tensors))
     try:

@@ -29,7 +29,8 @@ import numpy as np
 from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.config import TrackingMode
-from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapVersionError
+from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, MapVersionError
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.map_schema import (
@@ -86,6 +87,9 @@ class MapInfo:
     # what prepared the keyframe images (kvtracker_sdk.preprocess); optional in the header:
     # maps saved before it was recorded were made by the legacy one
     preprocessing: str = LEGACY_PREPROCESSING
+    # the session's input-image intrinsics and where they came from (optional header "camera")
+    camera: Camera | None = None
+    camera_source: IntrinsicsSource | None = None
 
     @property
     def layout(self) -> CacheLayout:
@@ -159,6 +163,9 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "tensor_sha256": _dumps(dict(info.tensor_sha256)),
         PREPROCESSING_FIELD: info.preprocessing,
     }
+    if info.camera is not None:  # optional: maps saved without known intrinsics omit it
+        source = info.camera_source.value if info.camera_source is not None else None
+        metadata["camera"] = _dumps({**info.camera.to_dict(), "source": source})
     metadata[_DIGEST_KEY] = metadata_digest(metadata)
     return metadata
 
@@ -336,6 +343,19 @@ def _decode_string_map(fields: _Fields, key: str) -> dict[str, str]:
     return value
 
 
+def _decode_camera(fields: _Fields) -> tuple[Camera | None, IntrinsicsSource | None]:
+    """The optional ``camera`` field (absent in maps saved without intrinsics)."""
+    if "camera" not in fields.metadata:
+        return None, None
+    raw = fields.json("camera", dict)
+    try:
+        camera = Camera.from_dict(raw)
+        source = None if raw.get("source") is None else IntrinsicsSource(raw["source"])
+    except (InputError, ValueError) as exc:
+        raise fields.fail(f"header field 'camera' is not a valid camera: {exc}") from exc
+    return camera, source
+
+
 def _decode_created(fields: _Fields) -> datetime:
     try:
         created = datetime.fromisoformat(fields.text("created_utc"))
@@ -373,6 +393,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
     if set(cache_keyframe_ids) != set(keyframe_ids):
         raise fields.fail("the cache's keyframe ids differ from the keyframes' ids")
     fields.json("tracker_config", dict)  # the tracker parses it later: fail here, typed
+    camera, camera_source = _decode_camera(fields)
     return MapInfo(
         format_version=version,
         sdk_version=fields.text("sdk_version"),
@@ -391,6 +412,8 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         tensor_sha256=MappingProxyType(_decode_string_map(fields, "tensor_sha256")),
         file_size=file_size,
         preprocessing=_decode_preprocessing(fields),
+        camera=camera,
+        camera_source=camera_source,
     )
 
 

@@ -52,6 +52,7 @@ class FrameOutputs:
     poses: np.ndarray  # [F, 4, 4] float64 T_world_cam
     confidence: np.ndarray | None = None  # [F, H, W] float32 in [0, 1]
     local_points: np.ndarray | None = None  # [F, H, W, 3] float32, camera frame
+    intrinsics: np.ndarray | None = None  # [F, 3, 3] float64 pixels, if predicted (DA3)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,10 @@ Accepted input (design doc, "Per-frame result"):
   Alone it acts as a rectangular mask; with a mask, the mask selects the object and the box only
   sets the crop region.
 
+* ``camera``: the input image's intrinsics (``Camera`` of size W x H), optional. With OpenCV
+  distortion the frame is undistorted first (same size and K), and the prepared frame's camera is
+  the undistorted one.
+
 Output: a uint8 image at model resolution, prepared by the model family's preprocessing
 (``kvtracker_sdk.preprocess``: Pi3 as KV-Tracker, DA3 as its own input processor), or by the
 loaded map's when it was made by another one; in object mode either the background blacked out
@@ -39,7 +43,9 @@ from kvtracker_sdk.errors import (
     NonFiniteImageError,
     ResolutionChangedError,
 )
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.pixel_transform import PixelTransform
+from kvtracker_sdk.geometry.undistort import Undistorter
 from kvtracker_sdk.preprocess import (
     BBox,
     Preprocessing,
@@ -70,6 +76,7 @@ class PreparedFrame:
     timestamp: float | None
     transform: PixelTransform  # pushed image pixel -> ``image`` pixel (crop and resize)
     preprocessing: str  # name of the preprocessing that made ``image`` (recorded in maps)
+    camera: Camera | None = None  # the given intrinsics of the input image, undistorted
 
 
 def check_image(image: Any, *, min_side: int) -> np.ndarray:
@@ -162,6 +169,7 @@ class FramePreparer:
         self.preprocessing: Preprocessing = for_family(family)
         self.config = resolve_resolution(config, family)
         self.patch_size = int(patch_size)
+        self._undistort = Undistorter()
 
     @property
     def resolution(self) -> int:
@@ -186,13 +194,15 @@ class FramePreparer:
         session_input_size: tuple[int, int] | None = None,
         map_resolution: tuple[int, int] | None = None,
         map_preprocessing: str | None = None,
+        camera: Camera | None = None,
     ) -> PreparedFrame:
         """Validate and convert one frame; raises an InputError subclass and changes nothing.
 
         ``session_input_size``: the (H, W) of the session's first frame (None: first frame).
         ``map_resolution``: the current map's model (h, w), which the frame must produce.
         ``map_preprocessing``: the name of the preprocessing that made the current map's frames
-        (None: no map, use the family's).
+        (None: no map, use the family's). ``camera``: the frame's intrinsics (its size must be
+        the image's); a camera with distortion has the frame undistorted first.
         """
         pipeline = self.preprocessing if map_preprocessing is None else named(map_preprocessing)
         checked = check_image(image, min_side=self.patch_size)
@@ -201,6 +211,13 @@ class FramePreparer:
             raise ResolutionChangedError(
                 f"image size changed from {tuple(session_input_size)} to {size} in mid-session; "
                 "call reset() to start a session at the new size"
+            )
+        if camera is not None and not isinstance(camera, Camera):
+            raise InputError(f"camera must be a kvtracker_sdk.Camera, got {type(camera).__name__}")
+        if camera is not None and camera.size != size:
+            raise InputError(
+                f"the camera describes {camera.height}x{camera.width} images, the frame is "
+                f"{size[0]}x{size[1]}"
             )
         stamp = _check_timestamp(timestamp)
         object_mask = check_mask(mask, size) if mask is not None else None
@@ -217,6 +234,9 @@ class FramePreparer:
                 f"frames of {size} give model input {out_size}, the map was built at "
                 f"{tuple(map_resolution)}"
             )
+        if camera is not None and camera.has_distortion:
+            checked = self._undistort(checked, camera)  # same size and K, lens model removed
+            camera = camera.undistorted()
         crop = self.config.object.preprocessing is ObjectPreprocessing.CROP
         if object_mode and crop and object_mask is not None:
             window = fit_box(
@@ -237,5 +257,5 @@ class FramePreparer:
         if object_mode and not crop and small_mask is not None:
             image_out[~small_mask] = 0  # black background (KV-Tracker object mode)
         return PreparedFrame(
-            image_out, small_mask, size, stamp, resized.transform, pipeline.name
+            image_out, small_mask, size, stamp, resized.transform, pipeline.name, camera
         )

@@ -19,6 +19,8 @@ import time
 from dataclasses import replace
 from typing import NamedTuple
 
+import numpy as np
+
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TimeoutPolicy, TrackerConfig
@@ -75,6 +77,7 @@ class FrameLoop:
         self.snapshot = TrackerSnapshot(_S.INIT, _R.NONE)  # replaced as a whole, never mutated
         self.failed_tracks = self._failed_tracks_in_row = 0
         self._world_change: WorldFrameChange | None = None  # a dropped world frame, not yet told
+        self.predicted_K: np.ndarray | None = None  # the last tracked frame's network K (DA3)
 
     @property
     def state(self) -> TrackingState:
@@ -138,6 +141,7 @@ class FrameLoop:
     ) -> tuple[Pose, float | None]:
         """The frame's world pose and confidence; TrackingFailedError if the backend failed."""
         tracked = track_checked(self.backend, frame.image, kf_map.cache, self.config.heads, index)
+        self.predicted_K = tracked.intrinsics  # the network's K of the model image, if any
         try:
             pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
         except ValueError as exc:  # a malformed pose from the backend

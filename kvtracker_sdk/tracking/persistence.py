@@ -30,6 +30,7 @@ from typing import Any
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.errors import (
     ConfigError,
     MapFormatError,
@@ -39,10 +40,12 @@ from kvtracker_sdk.errors import (
 )
 from kvtracker_sdk.io import map_export
 from kvtracker_sdk.io.map_file import MapInfo, load_map, save_map
+from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess import PREPROCESSINGS
 
 __all__ = [
     "ConfigOverride",
+    "check_map_camera",
     "LoadedTrackerMap",
     "export_point_cloud",
     "export_trajectory",
@@ -51,6 +54,7 @@ __all__ = [
     "save_tracker_map",
 ]
 
+_log = get_logger(__name__)
 PathLike = str | os.PathLike[str]
 ConfigOverride = TrackerConfig | Mapping[str, Any] | None
 
@@ -79,8 +83,10 @@ def save_tracker_map(
     keyframe_map: KeyframeMap | None,
     backend_info: BackendInfo,
     config: TrackerConfig,
+    camera: tuple[Camera, IntrinsicsSource] | None = None,
 ) -> MapInfo:
-    """Write ``keyframe_map`` (made by ``backend_info``'s backend under ``config``) to ``path``.
+    """Write ``keyframe_map`` (made by ``backend_info``'s backend under ``config``) to ``path``,
+    with the session's input-image intrinsics ``camera`` (and their source) if known.
 
     Atomic: if anything fails, ``path`` keeps its previous content. Raises StateError when there
     is no map, MapIOError when the file cannot be written.
@@ -92,6 +98,8 @@ def save_tracker_map(
         backend_info=backend_info,
         tracker_config_json=json.dumps(config.to_dict(), sort_keys=True),
         mode=config.mode.value,
+        camera=None if camera is None else camera[0],
+        camera_source=None if camera is None else camera[1],
     )
 
 
@@ -182,6 +190,33 @@ def load_tracker_map(
         )
     resolved = resolve_config(loaded.info, config, source)
     return LoadedTrackerMap(loaded.keyframe_map, resolved, loaded.info)
+
+
+def check_map_camera(info: MapInfo, given: Camera | None, source: str) -> bool:
+    """Warn (log WARNING ``map_camera_mismatch``) when the intrinsics given for this session
+    differ from those saved with the map; True when they agree or either is unknown.
+
+    Differ means: another image size, a focal length off by more than 1 %, or a principal point
+    off by more than 1 % of the image size. Not refused: the networks take no intrinsics as
+    input, so tracking runs; but the map's geometry was made by the saved camera, so poses and
+    scale are only as good as the two cameras are alike.
+    """
+    saved = info.camera
+    if saved is None or given is None:
+        return True
+    given = given.undistorted()
+    saved = saved.undistorted()
+    same = (
+        saved.size == given.size
+        and abs(given.fx / saved.fx - 1.0) <= 0.01
+        and abs(given.fy / saved.fy - 1.0) <= 0.01
+        and abs(given.cx - saved.cx) <= 0.01 * saved.width
+        and abs(given.cy - saved.cy) <= 0.01 * saved.height
+    )
+    if not same:
+        _log.warning("map_camera_mismatch", path=source, saved=saved.to_dict(),
+                     given=given.to_dict(), saved_source=getattr(info.camera_source, "value", None))
+    return same
 
 
 def export_point_cloud(keyframe_map: KeyframeMap | None, path: PathLike, **options: Any) -> int:

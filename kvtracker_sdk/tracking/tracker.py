@@ -30,14 +30,22 @@ import numpy as np
 
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
-from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import BackendMismatchError, MissingDependencyError, StateError
+from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
+from kvtracker_sdk.errors import (
+    BackendMismatchError,
+    InputError,
+    MissingDependencyError,
+    StateError,
+)
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import persistence
 from kvtracker_sdk.tracking.events import EventBus, EventSource
 from kvtracker_sdk.tracking.frame_input import FramePreparer
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
+from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
+from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
 from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
 from kvtracker_sdk.types import (
     FrameResult,
@@ -66,10 +74,15 @@ class Tracker(EventSource):
     None for defaults); ``backend`` implements ``kvtracker_sdk.backends.base.Backend``. The tracker
     does not close a backend it was given; it closes one it created (``from_pretrained``).
     Callbacks (``on_*``, see ``events.EventSource``) run on the thread that called the method
-    causing them (see ``events``).
+    causing them (see ``events``). ``camera``: the input images' intrinsics for the session
+    (``set_camera`` changes them; ``push_frame(camera=...)`` overrides them for one frame);
+    distorted frames are undistorted.
     """
 
-    def __init__(self, config: TrackerConfig | Mapping[str, Any] | None, backend: Backend) -> None:
+    def __init__(
+        self, config: TrackerConfig | Mapping[str, Any] | None, backend: Backend, *,
+        camera: Camera | None = None,
+    ) -> None:
         cfg = config if isinstance(config, TrackerConfig) else TrackerConfig.from_dict(config or {})
         self._preparer = FramePreparer(
             cfg, patch_size=backend.info.patch_size, family=backend.info.family
@@ -86,6 +99,14 @@ class Tracker(EventSource):
         self._input_size: tuple[int, int] | None = None  # of the session's frames
         self._frames = 0  # frame indices are never reused by one tracker
         self._closed = False
+        self._camera = _checked_camera(camera)
+        crops = cfg.mode is TrackingMode.OBJECT and (
+            cfg.object.preprocessing is ObjectPreprocessing.CROP
+        )
+        self._intrinsics = FrameIntrinsics(estimate=not crops)  # per-frame crops: no map-wide fit
+        self._last_intrinsics: tuple[Camera, IntrinsicsSource] | None = None
+        self._intake: LiveIntake | None = None  # made by the first submit()
+        self._intake_lock = threading.Lock()  # never the tracker's lock: submit must not wait
 
     @classmethod
     def from_pretrained(cls, weights: str | Path, **config: Any) -> Tracker:
@@ -103,7 +124,7 @@ class Tracker(EventSource):
     @classmethod
     def from_map(
         cls, path: PathLike, backend: Backend, config: ConfigOverride = None, *,
-        rebuild: bool = False,
+        rebuild: bool = False, camera: Camera | None = None,
     ) -> Tracker:
         """A tracker relocalising against the map saved at ``path`` by ``backend``'s model.
         ``config``: None keeps the map's saved one; a dict changes some of its fields.
@@ -111,9 +132,12 @@ class Tracker(EventSource):
         A map whose keyframes another preprocessing prepared (saved before the SDK followed the
         official pipelines: header without ``preprocessing``) is tracked against with frames
         prepared its way, and not extended; ``rebuild=True`` lets new keyframes extend it (also
-        prepared its way). Extending it otherwise raises ``MapPreprocessingError``."""
+        prepared its way). Extending it otherwise raises ``MapPreprocessingError``.
+        ``camera``: this session's intrinsics; when they differ from the map's saved ones a
+        WARNING ``map_camera_mismatch`` is logged (``persistence.check_map_camera``)."""
         loaded = persistence.load_tracker_map(path, backend.info, config)
-        tracker = cls(loaded.config, backend)
+        persistence.check_map_camera(loaded.info, camera, str(path))
+        tracker = cls(loaded.config, backend, camera=camera)
         tracker._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
         return tracker
 
@@ -158,6 +182,17 @@ class Tracker(EventSource):
         """The last valid pose with its frame index and timestamp (None like ``get_pose``)."""
         return self._loop.snapshot.pose
 
+    @property
+    def camera(self) -> Camera | None:
+        """The session's given intrinsics (None: predicted or estimated per frame)."""
+        return self._camera
+
+    def set_camera(self, camera: Camera | None) -> None:
+        """Give (or with None, forget) the input images' intrinsics from the next frame on."""
+        checked = _checked_camera(camera)
+        with self._call():
+            self._camera = checked
+
     # ------------------------------------------------------------------ session control
     def initialize(self, map: PathLike | None = None, *, rebuild: bool = False) -> None:
         """Start a fresh session: without ``map``, no map and state INIT; with ``map``, relocalise
@@ -168,6 +203,7 @@ class Tracker(EventSource):
             self.reset()
             return
         loaded = persistence.load_tracker_map(map, self.backend.info, self._config)
+        persistence.check_map_camera(loaded.info, self._camera, str(map))
         self._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
 
     def reset(self) -> None:
@@ -224,7 +260,9 @@ class Tracker(EventSource):
         """Save the map (after the pending rebuilds) atomically: ``path`` keeps its old content or
         holds the whole new map. StateError without a map; MapIOError if it cannot write."""
         kf_map = self._settled_map()
-        return persistence.save_tracker_map(path, kf_map, self.backend.info, self._config)
+        return persistence.save_tracker_map(
+            path, kf_map, self.backend.info, self._config, camera=self._map_camera()
+        )
 
     def export_point_cloud(self, path: PathLike, **options: Any) -> int:
         """The map's point cloud as PLY; ``options`` and return: ``persistence``'s."""
@@ -240,7 +278,11 @@ class Tracker(EventSource):
         return self._settle(timeout)
 
     def close(self) -> None:
-        """Stop the mapping worker (and close a backend this tracker created). Idempotent."""
+        """Stop the live intake and the mapping worker (and close a backend this tracker
+        created). Idempotent."""
+        intake = self._intake
+        if intake is not None:
+            intake.close(drain=False)  # before the lock: its worker may be inside push_frame
         with self._lock:
             if self._closed:
                 return
@@ -255,10 +297,61 @@ class Tracker(EventSource):
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
+    # ------------------------------------------------------------------ live intake
+    def submit(
+        self, image: np.ndarray, timestamp: float | None = None, *, mask: np.ndarray | None = None,
+        bbox: Any = None, camera: Camera | None = None, captured_at: float | None = None,
+    ) -> None:
+        """Hand a frame to the live worker and return at once (``tracking/live_intake.py``).
+
+        The worker always tracks the newest frame; one still waiting when a newer arrives is
+        dropped and counted. Results: ``on_result`` callbacks and ``latest()``; counters and
+        latency: ``stats``. ``timestamp`` defaults to the wall-clock time now (capture time).
+        For live use, build the tracker with ``threading={"async_mapping": True}`` so that
+        rebuilds do not pause tracking.
+        """
+        self._live().submit(image, timestamp, mask=mask, bbox=bbox, camera=camera,
+                            captured_at=captured_at)
+
+    def on_result(self, callback: ResultCallback) -> None:
+        """``callback(FrameResult)`` after each frame the live worker processed (worker thread)."""
+        self._live().on_result(callback)
+
+    def on_frame_error(self, callback: ErrorCallback) -> None:
+        """``callback(exception)`` when the live worker's ``push_frame`` raised (worker thread)."""
+        self._live().on_error(callback)
+
+    def latest(self) -> FrameResult | None:
+        """The live worker's most recent result (None before the first)."""
+        intake = self._intake
+        return None if intake is None else intake.latest()
+
+    @property
+    def stats(self) -> LiveStats:
+        """Live intake counters: submitted, processed, dropped, delivered FPS, latency."""
+        intake = self._intake
+        return LiveStats.empty() if intake is None else intake.stats
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until the live worker has no frame pending or in progress."""
+        intake = self._intake
+        return True if intake is None else intake.wait_idle(timeout)
+
+    def _live(self) -> LiveIntake:
+        intake = self._intake
+        if intake is None:
+            with self._intake_lock:
+                if self._closed:
+                    raise StateError("the tracker is closed")
+                if self._intake is None:
+                    self._intake = LiveIntake(self)
+                intake = self._intake
+        return intake
+
     # ------------------------------------------------------------------ the frame loop
     def push_frame(
         self, image: np.ndarray, timestamp: float | None = None, mask: np.ndarray | None = None,
-        bbox: Any = None,
+        bbox: Any = None, camera: Camera | None = None,
     ) -> FrameResult:
         """Track one RGB frame [H, W, 3] (uint8, or float in [0, 1]).
 
@@ -267,8 +360,10 @@ class Tracker(EventSource):
         backend failed on this frame (``error``); ``pose_valid`` is False while relocalising or for
         a low-confidence frame. ``keyframe_id`` is set when the frame became a keyframe in this
         call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
-        later). Bad input raises an ``InputError`` subclass before anything changes; backend
-        failures never raise.
+        later). ``camera`` gives this frame's intrinsics (else the session's); the result's
+        ``intrinsics`` are the input image's: given, predicted or estimated
+        (``tracking/intrinsics.py``). Bad input raises an ``InputError`` subclass before anything
+        changes; backend failures never raise.
         """
         start = time.perf_counter()
         with self._call():
@@ -278,17 +373,24 @@ class Tracker(EventSource):
                 session_input_size=self._input_size,
                 map_resolution=None if kf_map is None else kf_map.resolution,
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
+                camera=_checked_camera(camera) if camera is not None else self._camera,
             )
             timings = {"preprocess": _ms(start)}
             index = self._frames
+            self._loop.predicted_K = None
             step = self._loop.step(frame, index, timings)
+            intrinsics, source = self._intrinsics.resolve(
+                frame, self._loop.predicted_K, self._keeper.map
+            )
+            if intrinsics is not None and source is not None:
+                self._last_intrinsics = (intrinsics, source)
             # counted once the frame went through: an unexpected error leaves both as they were
             self._frames, self._input_size = index + 1, frame.input_size
             timings["total"] = _ms(start)
             result = FrameResult(
                 index, frame.timestamp, self.state, self.reason, step.pose, step.valid,
                 step.confidence, step.keyframe_id, self._loop.snapshot.map_generation, timings,
-                {"rebuilding": self._keeper.rebuilding}, step.error,
+                {"rebuilding": self._keeper.rebuilding}, step.error, intrinsics, source,
             )
         _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
                    confidence=step.confidence,
@@ -296,6 +398,13 @@ class Tracker(EventSource):
         return result
 
     # ------------------------------------------------------------------ plumbing
+    def _map_camera(self) -> tuple[Camera, IntrinsicsSource] | None:
+        """What a saved map records as its camera: the session's given one, else the last
+        frame's reported intrinsics."""
+        if self._camera is not None:
+            return self._camera, IntrinsicsSource.GIVEN
+        return self._last_intrinsics
+
     def _settled_map(self) -> KeyframeMap | None:
         """The map once the rebuilds pending now are installed (waits without the lock)."""
         self._settle(timeout=None)
@@ -331,3 +440,9 @@ class Tracker(EventSource):
                 yield
         finally:
             self._events.deliver()
+
+
+def _checked_camera(camera: Any) -> Camera | None:
+    if camera is not None and not isinstance(camera, Camera):
+        raise InputError(f"camera must be a kvtracker_sdk.Camera or None, got {camera!r}")
+    return camera

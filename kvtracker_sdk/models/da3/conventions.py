@@ -114,6 +114,7 @@ def frames_from_sdk(sdk: SDKOutput) -> FrameOutputs:
         local_points=numpy_or_none(
             None if sdk.local_points is None else sdk.local_points.flatten(0, 1)
         ),
+        intrinsics=sdk.intrinsics.flatten(0, 1).cpu().numpy(),
     )
 
 
@@ -140,4 +141,5 @@ def frames_from_heads(
         poses=sdk.T_world_cam.numpy(),
         confidence=numpy_or_none(sdk.confidence),
         local_points=numpy_or_none(sdk.local_points),
+        intrinsics=sdk.intrinsics.numpy(),
     )
