@@ -28,6 +28,8 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from kvtracker_sdk.errors import ConfigError, SourceError, TrajectoryError
+from kvtracker_sdk.geometry.camera import Camera
+from kvtracker_sdk.io.camera_files import DATASET_CAMERAS
 from kvtracker_sdk.io.trajectory import Trajectory, read_tum
 
 __all__ = [
@@ -69,6 +71,10 @@ class ImageSource(abc.ABC):
 
     def ground_truth(self) -> Trajectory | None:
         """The sequence's ground-truth ``T_world_cam`` trajectory, if it ships one."""
+        return None
+
+    def camera(self) -> Camera | None:
+        """The intrinsics the dataset publishes for these frames (None when unknown)."""
         return None
 
     def __repr__(self) -> str:
@@ -118,6 +124,7 @@ class TumSource(_FileListSource):
         folder = Path(path)
         listing = folder / "rgb.txt"
         stamps, files = [], []
+        self._camera_name: str | None = None
         try:
             lines = listing.read_text(encoding="utf-8").splitlines()
         except (OSError, UnicodeDecodeError) as exc:
@@ -125,6 +132,7 @@ class TumSource(_FileListSource):
         for number, line in enumerate(lines, start=1):
             fields = line.split()
             if not fields or fields[0].startswith("#"):
+                self._camera_name = self._camera_name or _tum_camera_name(line)
                 continue
             try:
                 if len(fields) != 2:
@@ -136,6 +144,12 @@ class TumSource(_FileListSource):
                 ) from exc
             files.append(folder / fields[1])
         super().__init__(folder, files, np.array(stamps))
+        self._camera_name = _tum_camera_name(folder.resolve().name) or self._camera_name
+
+    def camera(self) -> Camera | None:
+        """TUM's published intrinsics of the sequence's camera (freiburg 1, 2 or 3, found in the
+        folder name or in ``rgb.txt``'s header); fr1 and fr2 frames are distorted."""
+        return None if self._camera_name is None else DATASET_CAMERAS[self._camera_name]
 
     def ground_truth(self) -> Trajectory | None:
         """``groundtruth.txt`` (the whole motion-capture trajectory, not matched to frames)."""
@@ -150,6 +164,10 @@ class SevenScenesSource(_FileListSource):
         folder = Path(path)
         files = sorted(folder.glob("frame-*.color.png"))
         super().__init__(folder, files, np.arange(len(files)) / SEVEN_SCENES_FPS)
+
+    def camera(self) -> Camera:
+        """7-Scenes' published intrinsics (the Kinect's: 585 px focal, centre (320, 240))."""
+        return DATASET_CAMERAS["7scenes"]
 
     def ground_truth(self) -> Trajectory:
         """The ``frame-XXXXXX.pose.txt`` matrices (``T_world_cam``) stamped like the frames."""
@@ -225,6 +243,12 @@ def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     if bgr is None:
         raise SourceError(f"{path}: cannot decode the image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def _tum_camera_name(text: str) -> str | None:
+    """``tum_fr1``/``tum_fr2``/``tum_fr3`` when ``text`` names a TUM freiburg camera."""
+    match = re.search(r"(?:freiburg|fr)([123])(?![0-9])", text.lower())
+    return None if match is None else f"tum_fr{match.group(1)}"
 
 
 def _image_files(folder: Path) -> Iterator[Path]:
