@@ -1,0 +1,239 @@
+"""Non-blocking intake for a live camera: hand a frame over and return at once.
+
+A camera thread cannot wait for a network step of 50 ms to 5 s. ``LiveIntake`` gives it
+``submit(image, timestamp)``, which only stores the frame in a **one-slot mailbox** and returns
+(no tracker lock, no network, no I/O; a copy of the image unless ``copy=False``). One worker
+thread takes whatever the slot holds — always the newest frame — and runs ``Tracker.push_frame``
+on it. A frame still waiting when a newer one arrives is dropped and counted (the official
+KV-Tracker demo reads its RealSense through a one-slot queue the same way).
+
+Accounting: ``submitted == processed + dropped + pending + in_progress`` at every moment (the last
+two are 0 or 1; once idle, ``submitted == processed + dropped``); ``processed`` counts frames the
+worker finished, including those ``push_frame`` refused
+(``failed``, reported to ``on_error``). Results reach the app through ``on_result`` callbacks (on
+the worker thread) and the ``latest()`` snapshot. ``stats`` adds the delivered FPS (results in the
+last two seconds) and capture-to-result latency percentiles over the last 1,000 results, measured
+from ``captured_at`` (a ``time.perf_counter()`` reading taken when the frame was captured; the
+moment of ``submit`` if not given).
+
+Rebuilds: with ``threading.async_mapping`` (what ``kvtracker track`` uses for live sources) a
+rebuild runs on the mapping worker and tracking continues against the old map; with synchronous
+mapping the keyframe's ``push_frame`` runs the mapping pass on the intake worker, and frames
+arriving meanwhile are dropped — the producer is never blocked either way.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from kvtracker_sdk.errors import KVTrackerError, StateError
+from kvtracker_sdk.geometry.camera import Camera
+from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.types import FrameResult
+
+if TYPE_CHECKING:
+    from kvtracker_sdk.tracking.tracker import Tracker
+
+__all__ = ["LiveIntake", "LiveStats"]
+
+_log = get_logger(__name__)
+_LATENCY_SAMPLES = 1000
+_FPS_WINDOW_S = 2.0
+
+ResultCallback = Callable[[FrameResult], Any]
+ErrorCallback = Callable[[BaseException], Any]
+
+
+@dataclass(frozen=True)
+class LiveStats:
+    """A snapshot of a live intake's counters (see the module docstring)."""
+
+    submitted: int
+    processed: int  # finished by the worker (delivered + failed)
+    dropped: int  # replaced by a newer frame before the worker took them
+    pending: int  # 0 or 1: waiting in the slot
+    in_progress: int  # 0 or 1: being tracked by the worker
+    failed: int  # push_frame raised (bad input, a closed tracker, ...)
+    delivered_fps: float  # results per second over the last two seconds
+    latency_ms_p50: float | None  # capture -> result available, last 1,000 results
+    latency_ms_p95: float | None
+    latency_ms_p99: float | None
+
+    @classmethod
+    def empty(cls) -> LiveStats:
+        return cls(0, 0, 0, 0, 0, 0, 0.0, None, None, None)
+
+    @property
+    def delivered(self) -> int:
+        return self.processed - self.failed
+
+    @property
+    def drop_rate(self) -> float:
+        """Dropped / submitted (0 before the first frame)."""
+        return self.dropped / self.submitted if self.submitted else 0.0
+
+
+@dataclass(frozen=True)
+class _Pending:
+    image: Any
+    timestamp: float
+    mask: Any
+    bbox: Any
+    camera: Camera | None
+    captured_at: float
+
+
+class LiveIntake:
+    """A one-slot, newest-frame-wins intake in front of ``tracker`` (a worker thread)."""
+
+    def __init__(self, tracker: Tracker, *, copy: bool = True) -> None:
+        self._tracker = tracker
+        self._copy = bool(copy)
+        self._cond = threading.Condition(threading.Lock())
+        self._slot: _Pending | None = None
+        self._busy = False
+        self._closing = False
+        self._submitted = self._processed = self._dropped = self._failed = 0
+        self._latencies: deque[float] = deque(maxlen=_LATENCY_SAMPLES)
+        self._delivered_at: deque[float] = deque()
+        self._latest: FrameResult | None = None
+        self._on_result: list[ResultCallback] = []
+        self._on_error: list[ErrorCallback] = []
+        self._worker = threading.Thread(target=self._run, name="kvtracker-live", daemon=True)
+        self._worker.start()
+
+    # ------------------------------------------------------------------ producer side
+    def submit(
+        self,
+        image: np.ndarray,
+        timestamp: float | None = None,
+        *,
+        mask: np.ndarray | None = None,
+        bbox: Any = None,
+        camera: Camera | None = None,
+        captured_at: float | None = None,
+    ) -> None:
+        """Hand ``image`` over and return at once (a frame still waiting is dropped).
+
+        ``timestamp``: the capture time in seconds (default: ``time.time()`` now), reported in
+        the result. ``captured_at``: the capture moment on ``time.perf_counter()``'s clock, for
+        the latency statistics (default: now). The frame is validated by the worker; a bad
+        one goes to ``on_error``. StateError after ``close()``.
+        """
+        now = time.perf_counter()
+        if self._copy and isinstance(image, np.ndarray):
+            image = image.copy()  # the camera may reuse its buffer
+        item = _Pending(
+            image, time.time() if timestamp is None else timestamp, mask, bbox, camera,
+            now if captured_at is None else captured_at,
+        )
+        with self._cond:
+            if self._closing:
+                raise StateError("the live intake is closed")
+            if self._slot is not None:
+                self._dropped += 1
+            self._slot = item
+            self._submitted += 1
+            self._cond.notify()
+
+    # ------------------------------------------------------------------ app side
+    def on_result(self, callback: ResultCallback) -> None:
+        """Call ``callback(result)`` on the worker thread after every processed frame."""
+        self._on_result.append(callback)
+
+    def on_error(self, callback: ErrorCallback) -> None:
+        """Call ``callback(exception)`` on the worker thread when ``push_frame`` raises."""
+        self._on_error.append(callback)
+
+    def latest(self) -> FrameResult | None:
+        """The most recent result (None before the first)."""
+        return self._latest
+
+    @property
+    def stats(self) -> LiveStats:
+        with self._cond:
+            latencies = np.array(self._latencies, dtype=np.float64)
+            now = time.perf_counter()
+            recent = [t for t in self._delivered_at if now - t <= _FPS_WINDOW_S]
+            counts = (self._submitted, self._processed, self._dropped,
+                      int(self._slot is not None), int(self._busy), self._failed)
+        fps = len(recent) / _FPS_WINDOW_S if recent else 0.0
+        if len(recent) >= 2 and now - recent[0] < _FPS_WINDOW_S:  # younger than the window
+            fps = (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)
+        p50, p95, p99 = (
+            (None, None, None) if latencies.size == 0
+            else (float(v) for v in np.percentile(latencies, [50, 95, 99]))
+        )
+        return LiveStats(*counts, delivered_fps=fps, latency_ms_p50=p50,
+                         latency_ms_p95=p95, latency_ms_p99=p99)
+
+    def wait_idle(self, timeout: float | None = None) -> bool:
+        """Wait until no frame is pending or being processed; True if so within ``timeout``."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._slot is None and not self._busy, timeout)
+
+    def close(self, *, drain: bool = True, timeout: float | None = None) -> None:
+        """Stop taking frames; ``drain`` processes a pending frame first (else it is dropped).
+        Waits for the worker (at most ``timeout`` s). Idempotent."""
+        with self._cond:
+            self._closing = True
+            if not drain and self._slot is not None:
+                self._slot = None
+                self._dropped += 1
+            self._cond.notify_all()
+        if self._worker is not threading.current_thread():
+            self._worker.join(timeout)
+
+    # ------------------------------------------------------------------ worker
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._slot is not None or self._closing)
+                if self._slot is None:  # closing and nothing left
+                    return
+                item, self._slot = self._slot, None
+                self._busy = True
+            result, error = self._process(item)
+            done = time.perf_counter()
+            with self._cond:
+                self._processed += 1
+                self._busy = False
+                if error is not None:
+                    self._failed += 1
+                else:
+                    self._latest = result
+                    self._latencies.append((done - item.captured_at) * 1e3)
+                    self._delivered_at.append(done)
+                    while self._delivered_at and done - self._delivered_at[0] > _FPS_WINDOW_S:
+                        self._delivered_at.popleft()
+                self._cond.notify_all()
+            self._deliver(result, error)
+
+    def _process(self, item: _Pending) -> tuple[FrameResult | None, BaseException | None]:
+        try:
+            result = self._tracker.push_frame(
+                item.image, timestamp=item.timestamp, mask=item.mask, bbox=item.bbox,
+                camera=item.camera,
+            )
+        except KVTrackerError as exc:
+            return None, exc
+        except Exception as exc:  # a bug must not kill the worker silently: log, report, go on
+            _log.exception("live_frame_failed", error=repr(exc))
+            return None, exc
+        return result, None
+
+    def _deliver(self, result: FrameResult | None, error: BaseException | None) -> None:
+        callbacks: list[Any] = self._on_result if error is None else self._on_error
+        payload: Any = result if error is None else error
+        for callback in list(callbacks):
+            try:
+                callback(payload)
+            except Exception as exc:  # an app's callback must not stop the intake
+                _log.exception("live_callback_failed", error=repr(exc))
