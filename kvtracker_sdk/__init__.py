@@ -64,8 +64,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
     from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
+    from kvtracker_sdk.io.camera_files import read_camera_file
     from kvtracker_sdk.io.map_file import LoadedMap, load_map, read_map_info
     from kvtracker_sdk.io.map_format import MapInfo
+    from kvtracker_sdk.tracking.live_intake import LiveStats
     from kvtracker_sdk.tracking.tracker import Tracker
 
 # public name -> module that defines it (loaded lazily)
@@ -78,7 +80,9 @@ _LAZY: dict[str, str] = {
     "KVCache": "kvtracker_sdk.cache.kv_cache",
     "Keyframe": "kvtracker_sdk.cache.keyframe_map",
     "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
+    "LiveStats": "kvtracker_sdk.tracking.live_intake",
     "LoadedMap": "kvtracker_sdk.io.map_file",
+    "read_camera_file": "kvtracker_sdk.io.camera_files",
     "MapInfo": "kvtracker_sdk.io.map_format",
     "load_map": "kvtracker_sdk.io.map_file",
     "read_map_info": "kvtracker_sdk.io.map_file",
@@ -111,6 +115,7 @@ __all__ = [
     "KVTrackerError",
     "Keyframe",
     "KeyframeMap",
+    "LiveStats",
     "LoadedMap",
     "MapCorruptedError",
     "MapError",
@@ -148,6 +153,7 @@ __all__ = [
     "WeightsNotFoundError",
     "__version__",
     "load_map",
+    "read_camera_file",
     "read_map_info",
 ]
 

@@ -83,6 +83,7 @@ PUBLIC_API = [
     "KVTrackerError",
     "Keyframe",
     "KeyframeMap",
+    "LiveStats",
     "LoadedMap",
     "MapCorruptedError",
     "MapError",
@@ -120,6 +121,7 @@ PUBLIC_API = [
     "WeightsNotFoundError",
     "__version__",
     "load_map",
+    "read_camera_file",
     "read_map_info",
 ]
 

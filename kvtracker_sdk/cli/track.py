@@ -27,9 +27,9 @@ _OUT_HELP = "Output folder: trajectory.txt, keyframes.json, points.ply, trajecto
 @reports_errors
 def track(
     ctx: typer.Context,
-    input_path: Annotated[Path, typer.Argument(
-        metavar="INPUT", help="Video file, image folder, TUM folder (rgb.txt) or 7-Scenes sequence.",
-        show_default=False)],
+    input_path: Annotated[str, typer.Argument(
+        metavar="INPUT", help="Video file, image folder, TUM folder (rgb.txt), 7-Scenes sequence, "
+        "camera index (0) or stream URL (rtsp://...).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help=_OUT_HELP)] = Path("kvtracker_out"),
     weights: Annotated[str, typer.Option(
         help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
@@ -52,8 +52,14 @@ def track(
     view_angle: Annotated[float | None, typer.Option(
         help="Object mode: new keyframe past this view change (degrees). [default: 10]")] = None,
     max_keyframes: Annotated[int | None, typer.Option(help="Keyframe budget. [default: 32]")] = None,
-    async_mapping: Annotated[bool, typer.Option(
-        "--async-mapping", help="Rebuild the map on a worker thread.")] = False,
+    async_mapping: Annotated[bool | None, typer.Option(
+        "--async-mapping/--sync-mapping", help="Rebuild the map on a worker thread. "
+        "[default: async for a camera or stream, sync for files]")] = None,
+    camera: Annotated[Path | None, typer.Option(
+        help="Intrinsics file (JSON/YAML: fx fy cx cy width height distortion, or ROS "
+        "CameraInfo). [default: the dataset's published ones, if any]")] = None,
+    realtime: Annotated[bool, typer.Option(
+        "--realtime", help="Replay a file at its own frame rate, like a live camera.")] = False,
     config_file: Annotated[Path | None, typer.Option(
         "--config", help="TrackerConfig as JSON; the options above override it.")] = None,
     load_map: Annotated[Path | None, typer.Option(
@@ -78,9 +84,14 @@ def track(
         help="Voxel edge of points.ply (world units; 0 keeps all). [default: auto]")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
+    from kvtracker_sdk.io.camera_files import read_camera_file
+    from kvtracker_sdk.io.live_sources import PacedSource, is_live_spec
     from kvtracker_sdk.io.sources import open_source
 
     state: CliState = ctx.find_root().obj
+    live = is_live_spec(input_path) and not Path(input_path).exists()
+    if async_mapping is None and live:  # live: rebuilds must not pause tracking
+        async_mapping = True
     changes = _config_changes(
         resolution=resolution, mode=mode, keyframe_interval=keyframe_interval,
         view_angle=view_angle, max_keyframes=max_keyframes, async_mapping=async_mapping,
@@ -90,6 +101,9 @@ def track(
     box = parse_bbox(bbox) if bbox is not None else None
     selection = FrameSelection(start, stride, max_frames)
     source = open_source(input_path, fps=fps)
+    if realtime:
+        source = PacedSource(source)
+    intrinsics = read_camera_file(camera) if camera is not None else source.camera()
     mask_folder = MaskFolder(masks) if masks is not None else None
     _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box)
     options = OutputOptions(
@@ -99,10 +113,12 @@ def track(
     check_outputs(options)  # before the weights load and the first frame, not after the run
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
-        with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map) as tracker:
+        with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map,
+                      camera=intrinsics) as tracker:
             description = RunDescription(
                 "track", str(input_path), simulated=False,
-                details={"weights": weights, "source": repr(source), "load_map": _str(load_map)},
+                details={"weights": weights, "source": repr(source), "load_map": _str(load_map),
+                         "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box)
             run_session(state, tracker, frames, total=selection.count(len(source)),
@@ -177,8 +193,8 @@ def _config_changes(**options: Any) -> dict[str, Any]:
     for name in ("resolution", "mode"):
         if options[name] is not None:
             changes[name] = options[name]
-    if options["async_mapping"]:
-        changes["threading"] = {"async_mapping": True}
+    if options["async_mapping"] is not None:
+        changes["threading"] = {"async_mapping": bool(options["async_mapping"])}
     return changes
 
 
@@ -190,15 +206,16 @@ def _tracker(
     load_map: Path | None,
     *,
     rebuild: bool = False,
+    camera: Any = None,
 ) -> Any:
     """A new tracker with ``config``, or with ``--load-map`` one relocalising against the saved
     map (whose saved config is the base unless ``--config`` is given; the options change it)."""
     from kvtracker_sdk.tracking.tracker import Tracker
 
     if load_map is None:
-        return Tracker(config, backend)
+        return Tracker(config, backend, camera=camera)
     override = base.updated(**changes) if base is not None else (changes or None)
-    return Tracker.from_map(load_map, backend, override, rebuild=rebuild)
+    return Tracker.from_map(load_map, backend, override, rebuild=rebuild, camera=camera)
 
 
 def _is_onnx_export(weights: str) -> bool:

@@ -13,7 +13,8 @@ HxWx3 uint8 **RGB** array (OpenCV decodes to BGR; the conversion happens here, o
   ``frame-000000.pose.txt``, a 4x4 camera-to-world matrix); frames stamped ``index / 30``
   (the Kinect's rate: the dataset has no stamps); its poses are its ground truth.
 
-:func:`open_source` picks the right one for a path. OpenCV is imported when a frame is read.
+:func:`open_source` picks the right one for a path (or a live camera / stream: ``live_sources``).
+OpenCV is imported when a frame is read.
 """
 
 from __future__ import annotations
@@ -216,8 +217,14 @@ class VideoSource(ImageSource):
 
 def open_source(path: str | os.PathLike[str], *, fps: float = 30.0) -> ImageSource:
     """The source for ``path``: a video file, a TUM folder (``rgb.txt``), a 7-Scenes folder
-    (``frame-*.color.png``) or a folder of images (stamped ``index / fps``)."""
+    (``frame-*.color.png``), a folder of images (stamped ``index / fps``), or — when no such
+    path exists — a camera index (``"0"``) or a stream URL (``rtsp://...``), read live by
+    ``io.live_sources.CaptureSource``."""
     target = Path(path)
+    from kvtracker_sdk.io.live_sources import is_live_spec, open_live_source  # imports this module
+
+    if is_live_spec(path) and not target.exists():  # a camera index or a stream URL
+        return open_live_source(os.fspath(path))
     if target.is_file():
         if target.suffix.lower() in IMAGE_SUFFIXES:
             raise SourceError(f"{target} is a single image; pass the folder that holds the frames")
