@@ -13,7 +13,9 @@ Cases (``--cases``):
 
 Reported per case and rate: delivered FPS (results / run time), drop rate (dropped /
 submitted), capture-to-result latency p50/p95/p99 over all results (``captured_at`` is taken
-just before ``submit``), the producer's handover time (``submit`` call: max and p99.9), FPS
+just before ``submit``), the producer's handover time (``submit`` call: max and p99.9; beside
+it, as a reference, the same thread timing a bare copy of the image: what the machine and the
+GIL alone cost a few lines of Python on this thread), FPS
 while a rebuild runs vs between rebuilds (each result's interval to the previous result counted
 in the state the result reports, ``extras["rebuilding"]``), rebuilds accepted, and the first
 map's cost (first submit to the first result with a pose). Every run checks that
@@ -106,7 +108,7 @@ def run_live(
     tracker.on_result(on_result)
     states: set[Any] = set()
     tracker.on_state_change(lambda event: states.add(event.state))
-    blocks = np.empty(count)
+    blocks, copies = np.empty(count), np.empty(count)
     period = 1.0 / rate_hz
     start = time.perf_counter()
     for k in range(count):
@@ -116,6 +118,9 @@ def run_live(
         captured[stamp] = t0  # before submit: the worker may finish the frame at once
         tracker.submit(frames[k % len(frames)], timestamp=stamp, captured_at=t0)
         blocks[k] = time.perf_counter() - t0  # the handover alone (a dict store besides)
+        t1 = time.perf_counter()  # reference: the same image copy without any intake
+        frames[k % len(frames)].copy()
+        copies[k] = time.perf_counter() - t1
     produced = time.perf_counter()
     assert tracker.wait_idle(timeout=600)
     tracker.wait_for_map(timeout=600)
@@ -142,6 +147,8 @@ def run_live(
         "handover_ms": {"max": float(blocks.max() * 1e3),
                         "p99.9": float(np.percentile(blocks, 99.9) * 1e3),
                         "p50": float(np.median(blocks) * 1e3)},
+        "reference_copy_ms": {"max": float(copies.max() * 1e3),
+                              "p99.9": float(np.percentile(copies, 99.9) * 1e3)},
         "fps_during_rebuild": float(len(during) / during.sum()) if len(during) else None,
         "fps_between_rebuilds": float(len(between) / between.sum()) if len(between) else None,
         "frames_during_rebuild": int(len(during)),
