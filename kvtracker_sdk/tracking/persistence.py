@@ -30,7 +30,6 @@ from typing import Any
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.errors import (
     ConfigError,
     MapFormatError,
@@ -38,6 +37,7 @@ from kvtracker_sdk.errors import (
     MapVersionError,
     StateError,
 )
+from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io import map_export
 from kvtracker_sdk.io.map_file import MapInfo, load_map, save_map
 from kvtracker_sdk.log import get_logger

@@ -24,6 +24,7 @@ def _centroid(image: np.ndarray) -> np.ndarray:
     return np.array([(weight * cols).sum(), (weight * rows).sum()]) / weight.sum()
 
 
+@pytest.mark.parametrize("family", ["pi3", "da3"])
 @pytest.mark.parametrize(
     "config, bbox",
     [
@@ -35,10 +36,11 @@ def _centroid(image: np.ndarray) -> np.ndarray:
     ],
 )
 def test_a_spot_lands_where_the_transform_says(
-    config: TrackerConfig, bbox: tuple[float, float, float, float] | None
+    config: TrackerConfig, bbox: tuple[float, float, float, float] | None, family: str
 ) -> None:
     u, v = 203.3, 151.7
-    prepared = FramePreparer(config, patch_size=14).prepare(_spot_image(u, v), bbox=bbox)
+    preparer = FramePreparer(config, patch_size=14, family=family)
+    prepared = preparer.prepare(_spot_image(u, v), bbox=bbox)
     expected = prepared.transform.apply(np.array([u, v]))
     if bbox is not None:
         assert prepared.transform.ox < 0  # a crop really happened

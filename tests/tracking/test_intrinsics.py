@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from safetensors.numpy import load_file
 
-from kvtracker_sdk.backends.preprocess import resize_image
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
+from kvtracker_sdk.tracking.frame_input import FramePreparer
 from kvtracker_sdk.tracking.intrinsics import fit_intrinsics
 from kvtracker_sdk.tracking.tracker import Tracker
 from tests.helpers import shared_path
@@ -94,19 +95,20 @@ def test_da3_golden_intrinsics_through_the_backend_and_the_tracker() -> None:
     assert tracked.intrinsics is not None
     np.testing.assert_allclose(tracked.intrinsics, expected["query.intrinsics"][0, 0], rtol=1e-5)
 
-    # through the tracker: frames at twice the model size (364x504 -> 182x252), uint8
-    frames = [resize_image(np.round(i * 255).astype(np.uint8), (364, 504)) for i in images]
+    # through the tracker: uint8 frames of another size; FrameResult carries the backend's K of
+    # the model image back to the pushed image through the inverse of the frame's transform
+    frames = [np.round(cv2.resize(i, (504, 364)) * 255).astype(np.uint8) for i in images]
     with Tracker(TrackerConfig(resolution=224), backend) as tracker:
         results = [tracker.push_frame(frame) for frame in frames]
-        kf_map = tracker.keyframe_map
-    assert kf_map is not None and kf_map.resolution == (182, 252)  # no rebuild after frame 0
+        kf_map, config = tracker.keyframe_map, tracker.config
+    assert kf_map is not None and kf_map.generation == 1  # no rebuild after frame 0
     result = results[1]  # a tracked frame (frame 0 made the map)
     assert result.intrinsics_source is IntrinsicsSource.PREDICTED and result.intrinsics is not None
     assert result.intrinsics.size == (364, 504)
-    own = backend.track(resize_image(frames[1], (182, 252)), kf_map.cache)  # the same pass
+    prepared = FramePreparer(config, patch_size=14, family="da3").prepare(frames[1])
+    assert prepared.image.shape[:2] != (364, 504)  # the model saw a resized frame
+    own = backend.track(prepared.image, kf_map.cache)  # the same pass as the tracker's
     assert own.intrinsics is not None
-    # halving: u_model = u / 2 - 0.25, so fx_in = 2 fx_model and cx_in = 2 (cx_model + 0.25)
-    K_in = own.intrinsics.copy()
-    K_in[:2, :2] *= 2.0
-    K_in[:2, 2] = 2.0 * (K_in[:2, 2] + 0.25)
-    np.testing.assert_allclose(result.intrinsics.K(), K_in, rtol=1e-12)
+    np.testing.assert_allclose(
+        result.intrinsics.K(), prepared.transform.inverse().apply_to_K(own.intrinsics), rtol=1e-12
+    )
