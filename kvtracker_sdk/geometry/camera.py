@@ -11,7 +11,7 @@ Conventions (the same as every K in the SDK, and OpenCV's):
   another image of the same camera (resized, cropped) come from :meth:`Camera.transformed` with
   the :class:`~kvtracker_sdk.geometry.pixel_transform.PixelTransform` that made it.
 * ``distortion``: OpenCV coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``; empty for none.
-  The tracker undistorts such frames before the network (``geometry/undistort.py``), after which
+  The tracker undistorts such frames before the network (``preprocess/undistort.py``), after which
   the frame's intrinsics are :meth:`Camera.undistorted` (same K, no distortion).
 
 Rendering: :meth:`Camera.projection_matrix` is the OpenGL projection (see its docstring) and

@@ -12,7 +12,7 @@
 
 ROS distortion models ``plumb_bob`` and ``rational_polynomial`` are OpenCV's 5 and 8 coefficients;
 ``equidistant`` (fisheye) is refused. ``K`` is used, not ``P``: ``P`` describes the rectified
-image, and the SDK undistorts with K itself (``geometry/undistort.py``).
+image, and the SDK undistorts with K itself (``preprocess/undistort.py``).
 
 ``DATASET_CAMERAS`` holds the published intrinsics of the TUM RGB-D cameras (fr1, fr2, fr3) and of
 7-Scenes; ``io/sources.py`` attaches them to the sequences it opens.

@@ -45,7 +45,6 @@ from kvtracker_sdk.errors import (
 )
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.pixel_transform import PixelTransform
-from kvtracker_sdk.geometry.undistort import Undistorter
 from kvtracker_sdk.preprocess import (
     BBox,
     Preprocessing,
@@ -55,6 +54,7 @@ from kvtracker_sdk.preprocess import (
     mask_bounds,
     named,
 )
+from kvtracker_sdk.preprocess.undistort import Undistorter
 
 __all__ = [
     "FramePreparer",

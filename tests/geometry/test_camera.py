@@ -8,7 +8,7 @@ import pytest
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.camera import Camera, gl_view_matrix
 from kvtracker_sdk.geometry.pixel_transform import PixelTransform
-from kvtracker_sdk.geometry.undistort import Undistorter
+from kvtracker_sdk.preprocess.undistort import Undistorter
 
 TUM_FR2 = Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172))
 
