@@ -15,6 +15,7 @@ from typing import Annotated
 import typer
 
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
+from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.run_loop import InputFrame
@@ -76,6 +77,12 @@ def demo(
         help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
     voxel_size: Annotated[float | None, typer.Option(
         help="Voxel edge of points.ply (0 keeps all). [default: auto]")] = None,
+    view: Annotated[bool, typer.Option(
+        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra).")] = False,
+    view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
+    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file.")] = None,
+    ros2_bag: Annotated[Path | None, typer.Option(
+        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra).", metavar="DIR")] = None,
 ) -> None:
     """Run the tracker offline on a simulated hand-held camera and write every output."""
     from kvtracker_sdk.backends.simulated import SimulatedBackend
@@ -89,7 +96,7 @@ def demo(
     image_size = _parse_size(size)
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be >= 1, got {frames}")
-    check_outputs(OutputOptions(out, rerun=rerun))  # before the first frame
+    check_outputs(OutputOptions(out, rerun=rerun, save_map=save_map))  # before the first frame
     if gt is not None:
         truth = GroundTruth.from_tum(gt, rate_hz=30.0)
         if frames is not None:
@@ -119,13 +126,15 @@ def demo(
     options = OutputOptions(
         out, rerun=rerun, voxel_size=voxel_size,
         ground_truth=Trajectory(truth.timestamps, truth.poses), write_ground_truth=True,
+        save_map=save_map,
     )
     rendered = (
         InputFrame(f.image, f.timestamp) for f in backend.frames(image_size, textured=True)
     )
-    with Tracker(config, backend) as tracker:
+    with Tracker(config, backend) as tracker, \
+            live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as live:
         run_session(state, tracker, rendered, total=len(truth), description=description,
-                    options=options, announce_states=True)
+                    options=live.around(options), announce_states=True)
 
 
 def register(app: typer.Typer) -> None:

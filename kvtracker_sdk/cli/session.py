@@ -9,7 +9,7 @@ failure its own code: each after the map and the outputs of the frames processed
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -26,11 +26,13 @@ from kvtracker_sdk.cli.summary import format_summary
 from kvtracker_sdk.errors import KVTrackerError, MapError, MapIOError, OutputError
 from kvtracker_sdk.io.trajectory import Trajectory
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
     from kvtracker_sdk.io.map_format import MapInfo
     from kvtracker_sdk.tracking.events import StateChangeEvent
     from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.viz.rerun_sink import RerunSink
 
 __all__ = ["OutputOptions", "check_outputs", "run_session"]
 
@@ -48,6 +50,8 @@ class OutputOptions:
     ground_truth: Trajectory | None = None
     write_ground_truth: bool = False
     save_map: Path | None = None
+    # called after every frame (the live view, the ROS 2 bag: cli/live_outputs.py)
+    frame_observers: tuple[Callable[[InputFrame, FrameResult], None], ...] = ()
 
 
 def check_outputs(options: OutputOptions) -> None:
@@ -101,7 +105,7 @@ def run_session(
                 frames,
                 progress,
                 before_frame=(lambda i, f: sink.set_time(i, f.timestamp)) if sink else None,
-                after_frame=(lambda _i, f, r: sink.log_frame(f.image, r)) if sink else None,
+                after_frame=_after_frame(sink, options.frame_observers),
                 on_state_change=announce,
                 on_bad_frame=on_bad_frame,
             )
@@ -169,6 +173,22 @@ def _save_map(tracker: Tracker, path: Path, *, run_complete: bool) -> MapInfo | 
         return tracker.save_map(path)
     except MapIOError as error:  # writing, not reading, failed: an output problem (exit 10)
         raise OutputError(f"--save-map {path}: cannot write the map ({error})") from error
+
+
+def _after_frame(
+    sink: RerunSink | None, observers: tuple[Callable[[InputFrame, FrameResult], None], ...]
+) -> Callable[[int, InputFrame, FrameResult], None] | None:
+    """The loop's per-frame hook: the rerun sink, then every observer (None without any)."""
+    if sink is None and not observers:
+        return None
+
+    def after(_index: int, frame: InputFrame, result: FrameResult) -> None:
+        if sink is not None:
+            sink.log_frame(frame.image, result)
+        for observer in observers:
+            observer(frame, result)
+
+    return after
 
 
 def _report(

@@ -11,6 +11,7 @@ import typer
 from kvtracker_sdk.cli.backends import DEFAULT_WEIGHTS, BackendKind, ComputeDtype, open_backend
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
+from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.progress import busy
@@ -82,6 +83,11 @@ def track(
         help="Confidence filter of points.ply.")] = 0.5,
     voxel_size: Annotated[float | None, typer.Option(
         help="Voxel edge of points.ply (world units; 0 keeps all). [default: auto]")] = None,
+    view: Annotated[bool, typer.Option(
+        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra).")] = False,
+    view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
+    ros2_bag: Annotated[Path | None, typer.Option(
+        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra).", metavar="DIR")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
     from kvtracker_sdk.io.camera_files import read_camera_file
@@ -121,8 +127,10 @@ def track(
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box)
-            run_session(state, tracker, frames, total=selection.count(len(source)),
-                        description=description, options=options, on_bad_frame=on_bad_frame)
+            with live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as live:
+                run_session(state, tracker, frames, total=selection.count(len(source)),
+                            description=description, options=live.around(options),
+                            on_bad_frame=on_bad_frame)
     finally:
         chosen.close()
 
