@@ -1,0 +1,143 @@
+"""The live view in a real headless Chromium: the page shows the scene, the state, the keyframe
+frustums and a frame count that grows while a run is in progress; the server binds loopback only.
+
+Chromium comes from Debian's packages (``chromium``, ``chromium-driver``; ``.ci/run`` installs
+them). Without them the browser test skips locally and fails under CI=true.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from kvtracker_sdk.backends.simulated import SimulatedBackend
+from kvtracker_sdk.backends.simulated_scene import orbit
+from tests.helpers import dev_dependency
+from tests.tracking.sim_session import SIZE, make_tracker
+
+dev_dependency("viser")
+from kvtracker_sdk.viz.live_viewer import LOOPBACK, Viewer  # noqa: E402
+
+BROWSER_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--window-size=1200,800",
+)
+PAGE_TIMEOUT_S = 15.0  # generous: the page polls, it never sleeps a fixed time
+GATE_TIMEOUT_S = 30.0
+
+
+def _chromium() -> tuple[str, str]:
+    browser, driver = shutil.which("chromium"), shutil.which("chromedriver")
+    if browser is None or driver is None:
+        message = ("headless Chromium is missing: apt-get install -y chromium chromium-driver "
+                   "(.ci/run installs it)")
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(message + " (CI=true: this is a failure, not a skip)")
+        pytest.skip(message)
+    return browser, driver
+
+
+@pytest.fixture()
+def browser(tmp_path: Path) -> Iterator[Any]:
+    binary, driver_path = _chromium()
+    webdriver = dev_dependency("selenium.webdriver")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = binary
+    for flag in BROWSER_FLAGS:
+        options.add_argument(flag)
+    profile = tempfile.mkdtemp(prefix="chromium-profile-")  # a fresh profile every time
+    options.add_argument(f"--user-data-dir={profile}")
+    driver = webdriver.Chrome(options=options, service=Service(driver_path))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def _page_number(driver: Any, label: str) -> int:
+    match = re.search(rf"{label}: (\d+)", driver.find_element("tag name", "body").text)
+    return int(match.group(1)) if match else -1
+
+
+def test_page_shows_the_run_while_it_is_in_progress(browser: Any, tmp_path: Path) -> None:
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    backend = SimulatedBackend(orbit(num_frames=80, turns=0.25), seed=1)
+    first_part, paused, resume, finish = 45, threading.Event(), threading.Event(), threading.Event()
+    failures: list[BaseException] = []
+    with Viewer(port=0) as viewer, make_tracker(backend, keyframing={"interval_frames": 20}) as tr:
+        viewer.attach(tr)
+
+        def run() -> None:  # the app's camera loop, paused twice by the test
+            try:
+                for frame in backend.frames(SIZE, stop=first_part + 10, textured=True):
+                    if frame.index == first_part:
+                        paused.set()
+                        assert resume.wait(GATE_TIMEOUT_S)
+                    viewer.log_frame(frame.image, tr.push_frame(frame.image, timestamp=frame.timestamp))
+                paused.set()
+                assert finish.wait(GATE_TIMEOUT_S)  # the run is still in progress meanwhile
+            except BaseException as exc:  # reported by the test thread
+                failures.append(exc)
+                paused.set()
+
+        worker = threading.Thread(target=run)
+        worker.start()
+        try:
+            assert paused.wait(GATE_TIMEOUT_S) and not failures
+            paused.clear()
+            browser.get(viewer.url)
+            wait = WebDriverWait(browser, PAGE_TIMEOUT_S)
+            wait.until(lambda d: _page_number(d, "keyframe frustums") == 3)
+            wait.until(lambda d: _page_number(d, "frames") == first_part)
+            body = browser.find_element("tag name", "body").text
+            assert "state: TRACKING (BOOTSTRAP)" in body
+            assert browser.execute_script("return document.querySelectorAll('canvas').length") >= 1
+            resume.set()
+            assert paused.wait(GATE_TIMEOUT_S) and not failures
+            wait.until(lambda d: _page_number(d, "frames") == first_part + 10)
+            screenshot = tmp_path / "live_view.png"  # kept in pytest's tmp folder as an artefact
+            wait.until(lambda d: d.save_screenshot(str(screenshot)) and _drawn(screenshot))
+        finally:
+            resume.set()
+            finish.set()
+            worker.join(GATE_TIMEOUT_S)
+    assert not failures, failures
+
+
+def _drawn(screenshot: Path) -> bool:
+    """The rendered scene holds the trajectory / current camera (red) and the keyframe frustums
+    (blue), in the colours the viewer draws them with."""
+    image = cv2.imread(str(screenshot))[..., ::-1].astype(int)
+    scene = image[:, : image.shape[1] * 2 // 3]  # left of the panel
+    red = np.all(np.abs(scene - (255, 60, 60)) < 30, axis=-1).sum()
+    blue = np.all(np.abs(scene - (40, 140, 255)) < 30, axis=-1).sum()
+    return bool(red > 20 and blue > 20)
+
+
+def test_server_binds_loopback_only() -> None:
+    psutil = dev_dependency("psutil")
+    process = psutil.Process()
+    before = {c.laddr for c in process.net_connections(kind="inet")}
+    with Viewer(port=0) as viewer:
+        opened = [c for c in process.net_connections(kind="inet") if c.laddr not in before]
+        listening = [c for c in opened if c.status == psutil.CONN_LISTEN]
+        assert [c.laddr.port for c in listening] == [viewer.port]
+        assert {c.laddr.ip for c in opened} == {LOOPBACK}
+        assert viewer.url == f"http://127.0.0.1:{viewer.port}"
+    assert not [c for c in process.net_connections(kind="inet") if c.laddr.port == viewer.port
+                and c.status == psutil.CONN_LISTEN]
