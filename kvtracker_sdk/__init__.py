@@ -65,10 +65,16 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
     from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
     from kvtracker_sdk.io.camera_files import read_camera_file
+    from kvtracker_sdk.io.colmap_text import write_colmap_text
+    from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
     from kvtracker_sdk.io.map_file import LoadedMap, load_map, read_map_info
     from kvtracker_sdk.io.map_format import MapInfo
+    from kvtracker_sdk.io.nerfstudio import write_nerfstudio
+    from kvtracker_sdk.io.reconstruction import Reconstruction, reconstruction_from_map
+    from kvtracker_sdk.io.ros2_bag import Ros2BagWriter, write_ros2_bag
     from kvtracker_sdk.tracking.live_intake import LiveStats
     from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.viz.live_viewer import Viewer
 
 # public name -> module that defines it (loaded lazily)
 _LAZY: dict[str, str] = {
@@ -90,6 +96,15 @@ _LAZY: dict[str, str] = {
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Tracker": "kvtracker_sdk.tracking.tracker",
+    # exports for other tools ([ros] for the bag, [view] for the viewer: imported when made)
+    "PinholeIntrinsics": "kvtracker_sdk.io.intrinsics",
+    "Reconstruction": "kvtracker_sdk.io.reconstruction",
+    "Ros2BagWriter": "kvtracker_sdk.io.ros2_bag",
+    "Viewer": "kvtracker_sdk.viz.live_viewer",
+    "reconstruction_from_map": "kvtracker_sdk.io.reconstruction",
+    "write_colmap_text": "kvtracker_sdk.io.colmap_text",
+    "write_nerfstudio": "kvtracker_sdk.io.nerfstudio",
+    "write_ros2_bag": "kvtracker_sdk.io.ros2_bag",
 }
 
 __all__ = [
@@ -134,8 +149,11 @@ __all__ = [
     "NonFiniteImageError",
     "OnnxBackend",
     "OutputError",
+    "PinholeIntrinsics",
     "Pose",
+    "Reconstruction",
     "ResolutionChangedError",
+    "Ros2BagWriter",
     "Sim3",
     "SimulatedBackend",
     "SourceError",
@@ -150,11 +168,16 @@ __all__ = [
     "TrackingFailedError",
     "TrackingState",
     "TrajectoryError",
+    "Viewer",
     "WeightsNotFoundError",
     "__version__",
     "load_map",
     "read_camera_file",
     "read_map_info",
+    "reconstruction_from_map",
+    "write_colmap_text",
+    "write_nerfstudio",
+    "write_ros2_bag",
 ]
 
 

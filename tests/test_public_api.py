@@ -102,8 +102,11 @@ PUBLIC_API = [
     "NonFiniteImageError",
     "OnnxBackend",
     "OutputError",
+    "PinholeIntrinsics",
     "Pose",
+    "Reconstruction",
     "ResolutionChangedError",
+    "Ros2BagWriter",
     "Sim3",
     "SimulatedBackend",
     "SourceError",
@@ -118,11 +121,16 @@ PUBLIC_API = [
     "TrackingFailedError",
     "TrackingState",
     "TrajectoryError",
+    "Viewer",
     "WeightsNotFoundError",
     "__version__",
     "load_map",
     "read_camera_file",
     "read_map_info",
+    "reconstruction_from_map",
+    "write_colmap_text",
+    "write_nerfstudio",
+    "write_ros2_bag",
 ]
 
 
