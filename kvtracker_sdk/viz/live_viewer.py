@@ -12,8 +12,9 @@ The page shows, while tracking (world frame = the tracker's, OpenCV axes, drawn 
 - ``/trajectory``: the line through the valid camera centres;
 - ``/keyframes/kf_XXXX``: every keyframe's frustum (re-placed when a rebuild corrects the map);
 - ``/points``: the map's fused point cloud;
-- object mode: ``/object`` axes at the world origin (the object's frame) and ``/object/region``,
-  the box around the object's points; the current frame in the panel is tinted outside its mask;
+- object mode: ``/object`` axes at the object's centre (the mean of its masked points, as the
+  keyframing uses it) and ``/object/region``, the box around the object's points; the current
+  frame in the panel is darkened outside its mask;
 - a panel: state and reason, frames, FPS, keyframe frustums, map points (plain text, so a test
   or a person reads the same), and the current frame.
 
@@ -38,6 +39,7 @@ from kvtracker_sdk.errors import MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_wxyz_from_rotation
 from kvtracker_sdk.io.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
+from kvtracker_sdk.tracking.keyframes import object_centre
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
@@ -169,10 +171,13 @@ class Viewer:
                 scene.add_point_cloud("/points", points.astype(np.float32), colors,
                                       point_size=size * 0.02)
             if object_mode and len(points):
-                scene.add_frame("/object", axes_length=size, axes_radius=size * 0.03)
+                # the object's frame: at the tracker's object centre, axes of the world frame
+                centre = object_centre(keyframe_map.keyframes)
+                scene.add_frame("/object", axes_length=size, axes_radius=size * 0.03,
+                                position=tuple(centre))
                 low, high = np.percentile(points, [2, 98], axis=0)
                 scene.add_box("/object/region", color=(255, 180, 0), dimensions=tuple(high - low),
-                              position=tuple((high + low) / 2), wireframe=True)
+                              position=tuple((high + low) / 2 - centre), wireframe=True)
             self.num_points = len(points)
             self._panel.content = self._panel_text()
 

@@ -141,3 +141,17 @@ def test_server_binds_loopback_only() -> None:
         assert viewer.url == f"http://127.0.0.1:{viewer.port}"
     assert not [c for c in process.net_connections(kind="inet") if c.laddr.port == viewer.port
                 and c.status == psutil.CONN_LISTEN]
+
+
+def test_object_mode_shows_the_object_frame_and_region() -> None:
+    backend = SimulatedBackend(orbit(num_frames=120, turns=0.25), seed=2)
+    with Viewer(port=0) as viewer, make_tracker(backend, mode="object") as tracker:
+        viewer.attach(tracker)
+        for frame in backend.frames(SIZE, stop=40, textured=False, with_mask=True):
+            result = tracker.push_frame(frame.image, timestamp=frame.timestamp, mask=frame.mask)
+            viewer.log_frame(frame.image, result, mask=frame.mask)
+        nodes = set(viewer._server.scene._handle_from_node_name)  # viser's scene graph
+        assert {"/camera", "/trajectory", "/points", "/object", "/object/region"} <= nodes
+        assert {f"/keyframes/kf_{i:04d}" for i in tracker.keyframe_map.keyframe_ids} <= nodes
+        assert viewer.num_keyframes == tracker.map_status.num_keyframes >= 2
+        assert viewer.frames == 40
