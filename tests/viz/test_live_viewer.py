@@ -155,3 +155,13 @@ def test_object_mode_shows_the_object_frame_and_region() -> None:
         assert {f"/keyframes/kf_{i:04d}" for i in tracker.keyframe_map.keyframe_ids} <= nodes
         assert viewer.num_keyframes == tracker.map_status.num_keyframes >= 2
         assert viewer.frames == 40
+
+
+def test_missing_chromium_skips_locally_and_fails_under_ci(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(shutil, "which", lambda _name: None)
+    monkeypatch.delenv("CI", raising=False)
+    with pytest.raises(pytest.skip.Exception, match="apt-get install -y chromium"):
+        _chromium()
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI=true"):
+        _chromium()
