@@ -1,5 +1,6 @@
 """``kvtracker export colmap|nerfstudio`` on the golden-model run over the 20 real TUM frames:
-keyframe and all-frame cameras read back by pycolmap, fused points reproject onto their pixels."""
+keyframe and all-frame cameras read back by pycolmap, fused points reproject onto their pixels;
+the same run's ``--ros2-bag``."""
 
 from __future__ import annotations
 
@@ -20,7 +21,8 @@ def run(tmp_path_factory: pytest.TempPathFactory, golden_weights: Path) -> Path:
     out = tmp_path_factory.mktemp("tum-run")
     result = invoke("-q", "track", shared_path("data", "tum_fr2_desk"), "--weights",
                     golden_weights, "--out", out, "--resolution", "224", "--threads", "1",
-                    "--keyframe-interval", "7", "--save-map", out / "desk.kvmap")
+                    "--keyframe-interval", "7", "--save-map", out / "desk.kvmap",
+                    "--ros2-bag", out / "bag")
     assert result.exit_code == 0, result.output
     return out
 
@@ -52,3 +54,20 @@ def test_nerfstudio_export_of_the_tum_run(run: Path, tmp_path: Path) -> None:
     document = json.loads((tmp_path / "transforms.json").read_text())
     scale = document["w"] / 640  # the calibration follows the map's images (model resolution)
     assert document["fl_x"] == pytest.approx(520.9086 * scale, rel=1e-9)
+
+
+def test_track_writes_a_ros2_bag_of_the_real_frames(run: Path) -> None:
+    dev_dependency("rosbags")
+    from rosbags.highlevel import AnyReader
+
+    trajectory = read_tum(run / "trajectory.txt")
+    with AnyReader([run / "bag"]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        info = next(reader.deserialize(raw, c.msgtype) for c, _, raw in
+                    reader.messages([c for c in reader.connections
+                                     if c.topic == "/camera/camera_info"]))
+        stamps = [t for _, t, _ in reader.messages([c for c in reader.connections
+                                                     if c.topic == "/odom"])]
+    assert counts["/tf"] == counts["/odom"] == len(trajectory)
+    assert (info.width, info.height) == (640, 480)  # the input frames' size
+    assert stamps == [round(t * 1e9) for t in trajectory.stamps]
