@@ -37,14 +37,15 @@ class ExportFormat(str, enum.Enum):
 @reports_errors
 def export(
     ctx: typer.Context,
-    format: Annotated[ExportFormat, typer.Argument(help="colmap or nerfstudio.")],
+    kind: Annotated[ExportFormat, typer.Argument(metavar="FORMAT", help="colmap or nerfstudio.")],
     run_or_map: Annotated[Path, typer.Argument(
         metavar="RUN_OR_MAP", help="A .kvmap file, or a run folder holding one.")],
     out: Annotated[Path, typer.Argument(metavar="OUT", help="Output folder (created).")],
     all_frames: Annotated[bool, typer.Option(
         "--all-frames", help="Also every tracked frame (a `track` run folder, scene mode).")] = False,
     intrinsics: Annotated[str | None, typer.Option(
-        help="Calibration fx,fy,cx,cy,W,H (pixels; pixel centres at integers). [default: fitted]")
+        help="Calibration fx,fy,cx,cy,W,H (pixels; pixel centres at integers); default: fitted "
+        "to the map's points.")
     ] = None,
     min_confidence: Annotated[float, typer.Option(help="Confidence filter of the points.")] = 0.5,
     pixel_stride: Annotated[int, typer.Option(
@@ -59,12 +60,12 @@ def export(
     camera = _parse_intrinsics(intrinsics, find_map(run_or_map)) if intrinsics else None
     reconstruction = load_reconstruction(run_or_map, all_frames=all_frames, intrinsics=camera,
                                          min_confidence=min_confidence, stride=pixel_stride)
-    if format is ExportFormat.COLMAP:
+    if kind is ExportFormat.COLMAP:
         written = write_colmap_text(reconstruction, out)
     else:
         written = write_nerfstudio(reconstruction, out)
     if not state.quiet:
-        typer.echo(f"{format.value}: {len(reconstruction.images)} cameras, "
+        typer.echo(f"{kind.value}: {len(reconstruction.images)} cameras, "
                    f"{len(reconstruction.points)} points -> {written} "
                    f"(model points off the pinhole by {reconstruction.pinhole_residual_px:.2f} px "
                    f"median before placing them on their rays)")

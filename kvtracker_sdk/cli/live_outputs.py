@@ -70,9 +70,9 @@ def live_outputs(options: LiveOptions, tracker: Tracker, state: CliState) -> Ite
         yield live
     except BaseException as exc:
         finished = isinstance(exc, typer.Exit)  # Ctrl-C ends the run with Exit(130): keep it
-        _close(live, tracker, subscriptions, state, keep=finished)
+        _close(live, tracker, subscriptions, state, keep=finished, hold=False)
         raise
-    _close(live, tracker, subscriptions, state, keep=True)
+    _close(live, tracker, subscriptions, state, keep=True, hold=True)
     if live.missing:
         raise MissingDependencyError("; ".join(live.missing))
 
@@ -109,7 +109,7 @@ def _open_bag(live: LiveOutputs, path: Path, tracker: Tracker, state: CliState,
 
 
 def _close(live: LiveOutputs, tracker: Tracker, subscriptions: list[Any], state: CliState,
-           *, keep: bool) -> None:
+           *, keep: bool, hold: bool) -> None:
     for subscription in subscriptions:
         tracker.unregister(subscription)
     if live.bag is not None:
@@ -119,7 +119,7 @@ def _close(live: LiveOutputs, tracker: Tracker, subscriptions: list[Any], state:
         if path is not None and not state.quiet:
             typer.echo(f"ros2 bag   {path}", err=True)
     if live.viewer is not None:
-        if keep and state.chatty and sys.stdin.isatty():
+        if hold and state.chatty and sys.stdin.isatty():  # a finished run: let the user look
             _hold(live.viewer.url)
         live.viewer.close()
 

@@ -17,6 +17,9 @@ Frames without a valid pose (RELOCALIZING, MAPPING) publish no TF and no odometr
 diagnostics say why (level WARN). Stamps are the frames' timestamps (seconds -> integer ns),
 also used as the bag's record times; a map update is stamped with the latest frame's time.
 
+CameraInfo: the intrinsics resized to the pushed frames (the model saw the whole frame resized:
+scene mode; an object-mode crop is not reflected).
+
 Odometry covariance: diagonal, position std ``position_sigma / c`` (world units) and rotation std
 ``rotation_sigma / c`` (radians), c = the frame's confidence clipped to [1e-3, 1] (1 when the
 tracker computed none). The bag is written into a temporary folder beside ``path`` and renamed
