@@ -164,7 +164,7 @@ class Viewer:
                     self._keyframes[kf.keyframe_id] = scene.add_camera_frustum(
                         f"/keyframes/kf_{kf.keyframe_id:04d}", fov=fov, aspect=aspect,
                         scale=size, image=_thumbnail(kf.image, 96), color=(40, 140, 255),
-                        wxyz=wxyz, position=position, thickness=size * 0.03)
+                        wxyz=wxyz, position=position, thickness=2.0, thickness_units="screen")
                 else:
                     handle.wxyz, handle.position = wxyz, position
             if len(points):
@@ -210,7 +210,7 @@ class Viewer:
                 thumb.shape[1] / thumb.shape[0])
             self._camera = scene.add_camera_frustum(
                 "/camera", fov=fov, aspect=aspect, scale=0.1, image=thumb, color=(255, 60, 60),
-                wxyz=wxyz, position=position)
+                wxyz=wxyz, position=position, thickness=2.0, thickness_units="screen")
         else:
             self._camera.wxyz, self._camera.position, self._camera.image = wxyz, position, thumb
         if len(self._centres) >= 2 and len(self._centres) % _TRAJECTORY_EVERY in (0, 2):
