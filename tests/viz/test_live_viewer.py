@@ -140,6 +140,8 @@ def test_server_binds_loopback_only() -> None:
         assert [c.laddr.port for c in listening] == [viewer.port]
         assert {c.laddr.ip for c in opened} == {LOOPBACK}
         assert viewer.url == f"http://127.0.0.1:{viewer.port}"
+        remote = {c.raddr.ip for c in process.net_connections(kind="inet") if c.raddr}
+        assert remote <= {LOOPBACK, "::1"}  # no telemetry: nothing connects out
     assert not [c for c in process.net_connections(kind="inet") if c.laddr.port == viewer.port
                 and c.status == psutil.CONN_LISTEN]
 
