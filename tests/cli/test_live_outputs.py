@@ -11,7 +11,7 @@ import pytest
 from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency
 
-DEMO = ("demo", "--frames", "60", "--size", "120x160", "--keyframe-interval", "20")
+DEMO = ("demo", "--frames", "45", "--size", "120x160", "--keyframe-interval", "20")
 
 
 def test_demo_writes_a_bag_with_every_topic_and_serves_the_view(tmp_path: Path) -> None:
@@ -28,7 +28,7 @@ def test_demo_writes_a_bag_with_every_topic_and_serves_the_view(tmp_path: Path) 
     with AnyReader([tmp_path / "bag"]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
         assert {c.topic: c.msgtype for c in reader.connections} == TOPICS
-    assert counts["/diagnostics"] == counts["/camera/camera_info"] == 60
+    assert counts["/diagnostics"] == counts["/camera/camera_info"] == 45
     assert all(counts.values())
     assert (tmp_path / "run" / "run.json").is_file()
 

@@ -115,8 +115,8 @@ def test_intrinsics_estimate_and_resize() -> None:
 
 def test_demo_run_exports_through_the_cli(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    result = invoke("-q", "demo", "--out", run, "--frames", "70", "--no-loss", "--size", "120x160",
-                    "--keyframe-interval", "30", "--save-map", run / "map.kvmap")
+    result = invoke("-q", "demo", "--out", run, "--frames", "45", "--no-loss", "--size", "120x160",
+                    "--keyframe-interval", "20", "--save-map", run / "map.kvmap")
     assert result.exit_code == 0, result.output
     result = invoke("export", "colmap", run, tmp_path / "colmap", "--pixel-stride", "4")
     assert result.exit_code == 0, result.output
