@@ -20,9 +20,10 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import InputError
+from kvtracker_sdk.geometry.se3 import project_to_rotation
 from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
 
-__all__ = ["PosedImage", "Reconstruction", "reconstruction_from_map"]
+__all__ = ["PosedImage", "Reconstruction", "reconstruction_from_map", "rigid"]
 
 
 @dataclass(frozen=True)
@@ -88,14 +89,15 @@ def reconstruction_from_map(
         if kf.image.shape[:2] != (height, width):
             raise InputError(f"keyframe {kf.keyframe_id} is {kf.image.shape[:2]}, the intrinsics "
                              f"are for {(height, width)}")
-        images.append(PosedImage(f"kf_{kf.keyframe_id:04d}.png", kf.T_world_cam.copy(),
+        pose = rigid(kf.T_world_cam)
+        images.append(PosedImage(f"kf_{kf.keyframe_id:04d}.png", pose,
                                  np.ascontiguousarray(kf.image), intrinsics, kf.timestamp))
         depth = kf.local_points[..., 2].astype(np.float64)
         keep = sampled & (kf.confidence_map >= min_confidence) & np.isfinite(depth) & (depth > 0)
         if kf.mask is not None:
             keep &= kf.mask
         camera_points = rays[keep] * depth[keep, None]
-        R, t = kf.T_world_cam[:3, :3], kf.T_world_cam[:3, 3]
+        R, t = pose[:3, :3], pose[:3, 3]
         points.append(camera_points @ R.T + t)
         colors.append(kf.image[keep])
         owners.append(np.full(int(keep.sum()), index, dtype=np.int64))
@@ -110,6 +112,18 @@ def reconstruction_from_map(
         np.concatenate(uvs),
         float(np.median(all_residuals)) if all_residuals.size else 0.0,
     )
+
+
+def rigid(T_world_cam: np.ndarray) -> np.ndarray:
+    """The pose with its rotation projected onto SO(3) (a copy).
+
+    Map poses can sit ~1e-6 off a rotation (they went through float32 and Sim(3) gauges);
+    formats that store a quaternion make the rotation exact, so the points are placed with the
+    same exact rotation, keeping their reprojection exact too.
+    """
+    pose = np.array(T_world_cam, dtype=np.float64)
+    pose[:3, :3] = project_to_rotation(pose[:3, :3])
+    return pose
 
 
 def _pinhole_residuals(

@@ -20,7 +20,12 @@ import numpy as np
 
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
-from kvtracker_sdk.io.reconstruction import PosedImage, Reconstruction, reconstruction_from_map
+from kvtracker_sdk.io.reconstruction import (
+    PosedImage,
+    Reconstruction,
+    reconstruction_from_map,
+    rigid,
+)
 from kvtracker_sdk.io.trajectory import read_tum
 
 __all__ = ["find_map", "load_reconstruction"]
@@ -92,7 +97,7 @@ def _tracked_frames(run: Path, camera: PinholeIntrinsics, metadata: Any) -> list
                     abs(trajectory.stamps[candidate] - frame.timestamp) <= _STAMP_TOLERANCE:
                 height, width = frame.image.shape[:2]
                 frames.append(PosedImage(
-                    f"frame_{len(frames):06d}.png", trajectory.poses[candidate].copy(),
+                    f"frame_{len(frames):06d}.png", rigid(trajectory.poses[candidate]),
                     frame.image, camera.resized(width, height), float(frame.timestamp)))
                 break
     if len(frames) != len(trajectory):

@@ -33,7 +33,7 @@ def test_colmap_export_of_the_tum_run_reprojects(run: Path, tmp_path: Path) -> N
     assert result.exit_code == 0, result.output
     model = tmp_path / "sparse" / "0"
     errors = reprojection_errors(model)
-    assert len(errors) > 1000 and errors.max() < REPROJECTION_PX
+    assert len(errors) > 1000 and errors.max() < 1e-6 < REPROJECTION_PX  # exact up to printing
     read = pycolmap.Reconstruction(str(model))
     trajectory = read_tum(run / "trajectory.txt")
     frames = sorted((i for i in read.images.values() if i.name.startswith("frame_")),

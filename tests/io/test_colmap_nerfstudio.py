@@ -121,7 +121,7 @@ def test_demo_run_exports_through_the_cli(tmp_path: Path) -> None:
     result = invoke("export", "colmap", run, tmp_path / "colmap", "--pixel-stride", "4")
     assert result.exit_code == 0, result.output
     errors = reprojection_errors(tmp_path / "colmap" / "sparse" / "0")
-    assert len(errors) > 1000 and errors.max() < REPROJECTION_PX
+    assert len(errors) > 1000 and errors.max() < 1e-6 < REPROJECTION_PX  # exact up to printing
     result = invoke("export", "nerfstudio", run / "map.kvmap", tmp_path / "ns")
     assert result.exit_code == 0, result.output
     assert len(json.loads((tmp_path / "ns" / "transforms.json").read_text())["frames"]) == 3
