@@ -3,8 +3,8 @@
 Both need an optional extra; neither is needed to finish a run. Without viser, ``--view`` says
 so and the run goes on. Without rosbags, ``--ros2-bag`` says so at the start, the run and every
 other output are still written, and the command then exits with code 5 (an output it was asked
-for is missing). A bag is kept when the run ends or is interrupted (Ctrl-C: the frames so far)
-and discarded when the run fails.
+for is missing). A bag is kept when the run ends, is interrupted (Ctrl-C) or stops at a bad frame (the frames so
+far), and discarded when the run fails on a bug.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import typer
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.run_loop import InputFrame
 from kvtracker_sdk.cli.session import OutputOptions
-from kvtracker_sdk.errors import MissingDependencyError
+from kvtracker_sdk.errors import KVTrackerError, MissingDependencyError
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
@@ -69,8 +69,10 @@ def live_outputs(options: LiveOptions, tracker: Tracker, state: CliState) -> Ite
             _open_bag(live, options.ros2_bag, tracker, state, subscriptions)
         yield live
     except BaseException as exc:
-        finished = isinstance(exc, typer.Exit)  # Ctrl-C ends the run with Exit(130): keep it
-        _close(live, tracker, subscriptions, state, keep=finished, hold=False)
+        # the run ended early but its frames are sound (Ctrl-C: Exit(130); a bad frame or a map
+        # that could not be saved: an SDK error after the outputs were written): keep the bag
+        sound = isinstance(exc, typer.Exit | KeyboardInterrupt | KVTrackerError)
+        _close(live, tracker, subscriptions, state, keep=sound, hold=False)
         raise
     _close(live, tracker, subscriptions, state, keep=True, hold=True)
     if live.missing:

@@ -53,3 +53,26 @@ def test_without_rosbags_the_other_outputs_are_written_and_the_exit_code_says_so
     assert "kvtracker-sdk[ros]" in result.stderr
     assert {"trajectory.txt", "points.ply", "run.json"} <= {p.name for p in (tmp_path / "run").iterdir()}
     assert not (tmp_path / "bag").exists()
+
+
+def test_an_interrupted_run_keeps_its_bag(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    dev_dependency("rosbags")
+    from rosbags.highlevel import AnyReader
+
+    from kvtracker_sdk.tracking.tracker import Tracker
+
+    push = Tracker.push_frame
+    pushed = []
+
+    def interrupting(self: Tracker, *args: object, **kwargs: object) -> object:
+        if len(pushed) == 30:
+            raise KeyboardInterrupt  # Ctrl-C while tracking frame 30
+        pushed.append(1)
+        return push(self, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Tracker, "push_frame", interrupting)
+    result = invoke(*DEMO, "--out", tmp_path / "run", "--ros2-bag", tmp_path / "bag")
+    assert result.exit_code == 130, result.output
+    with AnyReader([tmp_path / "bag"]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    assert counts["/diagnostics"] == 30 and counts["/kvtracker/map_points"] >= 1
