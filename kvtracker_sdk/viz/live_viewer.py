@@ -51,6 +51,7 @@ __all__ = ["LOOPBACK", "Viewer"]
 
 LOOPBACK = "127.0.0.1"  # the only address the viewer binds: a live camera feed stays local
 _TRAJECTORY_EVERY = 5  # frames between re-sends of the trajectory line
+_TRAJECTORY_POINTS = 2000  # at most this many centres per send (the line is re-sent whole)
 
 
 def _viser() -> Any:
@@ -215,6 +216,9 @@ class Viewer:
             self._camera.wxyz, self._camera.position, self._camera.image = wxyz, position, thumb
         if len(self._centres) >= 2 and len(self._centres) % _TRAJECTORY_EVERY in (0, 2):
             centres = np.asarray(self._centres, dtype=np.float32)
+            if len(centres) > _TRAJECTORY_POINTS:  # a long run: evenly thinned, ends kept
+                keep = np.linspace(0, len(centres) - 1, _TRAJECTORY_POINTS).round().astype(int)
+                centres = centres[keep]
             segments = np.stack([centres[:-1], centres[1:]], axis=1)  # [S, 2, 3]
             scene.add_line_segments("/trajectory", segments, colors=(255, 60, 60),
                                     thickness=2.0, thickness_units="screen")
