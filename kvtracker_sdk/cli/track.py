@@ -127,9 +127,9 @@ def track(
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box)
-            with live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as live:
+            with live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as outs:
                 run_session(state, tracker, frames, total=selection.count(len(source)),
-                            description=description, options=live.around(options),
+                            description=description, options=outs.around(options),
                             on_bad_frame=on_bad_frame)
     finally:
         chosen.close()
