@@ -71,8 +71,9 @@ class Ros2BagWriter:
 
     Feed it ``write_frame(result, width, height)`` for every pushed frame and
     ``write_map(tracker.keyframe_map)`` on map updates (any thread); ``close()`` finishes it.
-    ``intrinsics``: the camera's calibration at the frames' size; None: estimated from the first
-    map's keyframes and resized to the frames. ``T_base_optical``: the static extrinsic.
+    ``intrinsics``: the camera's calibration at the frames' size; None: each frame's
+    ``FrameResult.intrinsics`` when the tracker reports one, else estimated from the first map's
+    keyframes and resized to the frames. ``T_base_optical``: the static extrinsic.
     """
 
     def __init__(
@@ -101,6 +102,7 @@ class Ros2BagWriter:
         self.frames = frames
         self.T_base_optical = checked_extrinsic(T_base_optical)
         self.intrinsics = intrinsics
+        self._given = intrinsics is not None  # else FrameResult.intrinsics, else fitted to the map
         self.position_sigma, self.rotation_sigma = float(position_sigma), float(rotation_sigma)
         self.path_every, self.max_points = max(1, int(path_every)), int(max_points)
         self.min_confidence, self.frustum_size = float(min_confidence), float(frustum_size)
@@ -176,8 +178,10 @@ class Ros2BagWriter:
                     self._write_path(now)
                 self._generation = result.map_generation
             self._previous_valid = valid
-            if self.intrinsics is not None:
-                camera = self.intrinsics
+            camera = self.intrinsics
+            if not self._given and result.intrinsics is not None:  # the tracker's own camera
+                camera = PinholeIntrinsics.of(result.intrinsics)
+            if camera is not None:
                 if (camera.width, camera.height) != (width, height):
                     camera = camera.resized(width, height)
                 self._write("/camera/camera_info", now,
