@@ -72,12 +72,22 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.io.nerfstudio import write_nerfstudio
     from kvtracker_sdk.io.reconstruction import Reconstruction, reconstruction_from_map
     from kvtracker_sdk.io.ros2_bag import Ros2BagWriter, write_ros2_bag
+    from kvtracker_sdk.scale.manifest import EvalManifest, load_manifest
+    from kvtracker_sdk.scale.results import EvalManyResult
+    from kvtracker_sdk.scale.runner import run_many
+    from kvtracker_sdk.scale.service import TrackerHost
     from kvtracker_sdk.tracking.live_intake import LiveStats
     from kvtracker_sdk.tracking.tracker import Tracker
     from kvtracker_sdk.viz.live_viewer import Viewer
 
 # public name -> module that defines it (loaded lazily)
 _LAZY: dict[str, str] = {
+    # scale-out (layer 6): Ray is imported only by an engine or actor that needs it
+    "EvalManifest": "kvtracker_sdk.scale.manifest",
+    "EvalManyResult": "kvtracker_sdk.scale.results",
+    "TrackerHost": "kvtracker_sdk.scale.service",
+    "load_manifest": "kvtracker_sdk.scale.manifest",
+    "run_many": "kvtracker_sdk.scale.runner",
     "Backend": "kvtracker_sdk.backends.base",
     "BackendInfo": "kvtracker_sdk.backends.base",
     "MapResult": "kvtracker_sdk.backends.base",
@@ -118,6 +128,8 @@ __all__ = [
     "Camera",
     "CheckpointMismatchError",
     "ConfigError",
+    "EvalManifest",
+    "EvalManyResult",
     "EvaluationError",
     "FrameResult",
     "HeadSet",
@@ -164,6 +176,7 @@ __all__ = [
     "TrackedPose",
     "Tracker",
     "TrackerConfig",
+    "TrackerHost",
     "TrackerSnapshot",
     "TrackingFailedError",
     "TrackingState",
@@ -171,10 +184,12 @@ __all__ = [
     "Viewer",
     "WeightsNotFoundError",
     "__version__",
+    "load_manifest",
     "load_map",
     "read_camera_file",
     "read_map_info",
     "reconstruction_from_map",
+    "run_many",
     "write_colmap_text",
     "write_nerfstudio",
     "write_ros2_bag",
