@@ -30,6 +30,7 @@ import argparse
 import json
 import os
 import platform
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -225,7 +226,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--step-ms", type=float, default=50.0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--name", default="live")
+    parser.add_argument(
+        "--switch-interval-ms", type=float, default=None,
+        help="CPython's GIL switch interval for this run (default: the interpreter's, 5 ms): a "
+        "thread that wants the GIL waits up to this long while the worker runs Python code, so "
+        "an app that needs a shorter handover tail lowers it (sys.setswitchinterval)")
     args = parser.parse_args(argv)
+    if args.switch_interval_ms is not None:
+        sys.setswitchinterval(args.switch_interval_ms / 1e3)
     rows: list[dict[str, Any]] = []
     load_before = os.getloadavg()
     for case in args.cases:
@@ -250,6 +258,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     out = RESULTS / f"{args.name}.json"
     out.write_text(json.dumps({
         "rows": rows, "args": vars(args), "load_average": [load_before, load_after],
+        "switch_interval_s": sys.getswitchinterval(),
         "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
     }, indent=1))
     print(f"wrote {out}")
