@@ -25,8 +25,6 @@ from typing import TypeVar
 from urllib.parse import urlparse
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file
 from torch import nn
 
 from kvtracker_sdk.errors import (
@@ -35,6 +33,7 @@ from kvtracker_sdk.errors import (
     ModelError,
     WeightsNotFoundError,
 )
+from kvtracker_sdk.models.weights_file import read_safetensors
 
 ModuleT = TypeVar("ModuleT", bound=nn.Module)
 
@@ -183,11 +182,9 @@ class StateDictShapes:
 
 def read_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     """Every tensor of a ``.safetensors`` checkpoint; ``ModelError`` for a file that is not one
-    (a pickle, a zip, an empty or truncated file: safetensors' own error names the cause)."""
-    try:
-        return load_file(path)
-    except (SafetensorError, ValueError) as exc:
-        raise ModelError(f"{path} is not a readable .safetensors checkpoint: {exc}") from exc
+    (a pickle, a zip, an empty or truncated file, a FIFO) or that changes while being read
+    (read without a memory map: ``weights_file.py`` says why)."""
+    return read_safetensors(path)
 
 
 def load_strictly(

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from safetensors import SafetensorError, safe_open
 from torch import nn
 
 from kvtracker_sdk.errors import ModelError
@@ -26,6 +25,7 @@ from kvtracker_sdk.models.checkpoint_utils import resolve_weights
 from kvtracker_sdk.models.da3.family import DA3Family
 from kvtracker_sdk.models.family import ModelFamily
 from kvtracker_sdk.models.pi3.family import Pi3Family
+from kvtracker_sdk.models.weights_file import read_safetensors_keys
 
 __all__ = [
     "FAMILIES",
@@ -111,12 +111,8 @@ def family_of_keys(keys: Iterable[str]) -> Family:
 
 def checkpoint_family(path: str | os.PathLike[str]) -> Family:
     """Family of a local ``.safetensors`` file, from its header (tensor data is not read)."""
-    try:
-        with safe_open(os.fspath(path), framework="pt") as handle:
-            keys = list(handle.keys())
-    except (SafetensorError, ValueError) as exc:  # a pickle, a zip, an empty or truncated file
-        raise ModelError(f"{path} is not a readable .safetensors checkpoint: {exc}") from exc
-    return family_of_keys(keys)
+    # ModelError for a pickle, a zip, an empty or truncated file, a FIFO
+    return family_of_keys(read_safetensors_keys(path))
 
 
 def load_model(weights: str | os.PathLike[str], *, config: Any | None = None) -> LoadedModel:
