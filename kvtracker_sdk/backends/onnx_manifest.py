@@ -128,10 +128,13 @@ class OnnxManifest(_Frozen):
     def cache_layout(self) -> CacheLayout:
         return CacheLayout.from_dict(self.layout)
 
-    def backend_info(self, *, device: str, accelerations: tuple[str, ...]) -> BackendInfo:
-        """The ``BackendInfo`` of a runtime serving these graphs (``backend="onnx"``)."""
+    def backend_info(
+        self, *, device: str, accelerations: tuple[str, ...], backend: str = "onnx"
+    ) -> BackendInfo:
+        """The ``BackendInfo`` of a runtime (``backend``: "onnx", "openvino") serving these
+        graphs: every runtime's has this manifest's fingerprint and layout."""
         return BackendInfo(
-            backend="onnx",
+            backend=backend,
             model=self.model,
             family=self.family,
             config_hash=self.config_hash,

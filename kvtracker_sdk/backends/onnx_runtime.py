@@ -1,11 +1,7 @@
 """ONNX Runtime sessions of an export folder, chained into mapping and tracking passes.
 
-``OnnxRunner`` speaks numpy: float32 images in [0, 1], K/V arrays, per-frame outputs in the
-SDK's conventions. It knows nothing of ``KVCache`` or uint8 frames (that is ``OnnxBackend``'s
-job) so that the exporter can run it on its check inputs too. It serves every family: the
-decoders' outputs other than K/V are the heads' inputs, fed to the head graphs by name, and the
-family's record (``models.registry.family_named(manifest.family)``) picks the head graphs and
-converts their outputs.
+``OnnxRunner`` is the ``GraphRunner`` (``graph_runner``: the passes, in numpy) whose graphs run
+as ONNX Runtime sessions.
 
 Speed choices (``session_options``): full graph optimisation (``ORT_ENABLE_ALL``: fusions of
 LayerNorm, GELU, MatMul+Add...), the CPU memory arena and memory patterns (buffers are reused
@@ -24,17 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.onnx_manifest import (
-    OnnxManifest,
-    past_key_name,
-    past_value_name,
-    present_key_name,
-    present_value_name,
-)
+from kvtracker_sdk.backends.graph_runner import GraphRunner
+from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
-from kvtracker_sdk.models.family import FrameOutputs
-from kvtracker_sdk.models.registry import family_named
-from kvtracker_sdk.types import HeadSet
 
 __all__ = ["OnnxRunner", "import_onnxruntime", "providers_for", "session_options"]
 
@@ -97,7 +85,7 @@ def session_options(threads: int | None = None) -> Any:
     return options
 
 
-class OnnxRunner:
+class OnnxRunner(GraphRunner):
     """One ONNX Runtime session per graph of an export; mapping and tracking passes in numpy."""
 
     def __init__(
@@ -108,11 +96,10 @@ class OnnxRunner:
         providers: Sequence[Any] | None = None,
         threads: int | None = None,
     ) -> None:
+        super().__init__(manifest)
         ort = import_onnxruntime()
         folder = Path(folder)
-        self.manifest = manifest
         self.providers = providers_for("cpu", providers)
-        self._family = family_named(manifest.family)
         options = session_options(threads)
         try:
             self._sessions = {
@@ -123,13 +110,6 @@ class OnnxRunner:
             }
         except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/RuntimeError
             raise BackendError(f"ONNX Runtime cannot load the graphs in {folder}: {exc}") from exc
-        self._outputs = {
-            name: [spec.name for spec in graph.outputs] for name, graph in manifest.graphs.items()
-        }
-        self._inputs = {
-            name: [spec.name for spec in graph.inputs] for name, graph in manifest.graphs.items()
-        }
-        self.num_layers = manifest.cache_layout.num_layers
 
     @property
     def active_providers(self) -> tuple[str, ...]:
@@ -142,48 +122,3 @@ class OnnxRunner:
         except Exception as exc:  # onnxruntime's exceptions are not part of our API
             raise BackendError(f"ONNX Runtime failed in graph {graph!r}: {exc}") from exc
         return dict(zip(self._outputs[graph], outputs, strict=True))
-
-    def encode(self, images: np.ndarray) -> np.ndarray:
-        """float32 [F, 3, H, W] in [0, 1] -> patch tokens [F, h, w, dim]."""
-        return self._run("encoder", {"images": images})["patch_tokens"]
-
-    def map(self, images: np.ndarray) -> tuple[FrameOutputs, list[np.ndarray], list[np.ndarray]]:
-        """Full attention over keyframes float32 [N, 3, H, W] in [0, 1]: all heads, and per
-        cached layer K and V [1, heads, N*T, head_dim]."""
-        decoded = self._run("decoder_map", {"patch_tokens": self.encode(images)})
-        keys = [decoded.pop(present_key_name(i)) for i in range(self.num_layers)]
-        values = [decoded.pop(present_value_name(i)) for i in range(self.num_layers)]
-        return self.heads(decoded, HeadSet.ALL, images.shape[-2:]), keys, values
-
-    def track(
-        self,
-        image: np.ndarray,
-        past: Sequence[tuple[np.ndarray, np.ndarray]],
-        past_length: int,
-        heads: HeadSet,
-    ) -> FrameOutputs:
-        """One frame float32 [1, 3, H, W] against a cache.
-
-        ``past[i]`` = (K, V) of cached layer ``i``, [1, heads, capacity, head_dim] float32,
-        whose first ``past_length`` tokens are the cached ones (the rest is ignored). Arrays
-        that are C-contiguous are read in place.
-        """
-        feeds = {
-            "patch_tokens": self.encode(image),
-            "past_length": np.asarray(past_length, dtype=np.int64),
-        }
-        for layer, (key, value) in enumerate(past):
-            feeds[past_key_name(layer)] = key
-            feeds[past_value_name(layer)] = value
-        return self.heads(self._run("decoder_track", feeds), heads, image.shape[-2:])
-
-    def heads(
-        self, decoded: dict[str, np.ndarray], heads: HeadSet, image_size: Sequence[int]
-    ) -> FrameOutputs:
-        """Run the head graphs ``heads`` needs on the decoder's outputs (fed by name), converted
-        to the SDK's conventions for images of ``image_size`` (H, W)."""
-        outputs: dict[str, np.ndarray] = {}
-        for graph in self._family.head_graphs(heads):
-            outputs.update(self._run(graph, {name: decoded[name] for name in self._inputs[graph]}))
-        height, width = image_size
-        return self._family.convert_heads(outputs, heads, (int(height), int(width)))
