@@ -60,6 +60,7 @@ from kvtracker_sdk.types import (
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
     from kvtracker_sdk.backends.onnx import OnnxBackend
+    from kvtracker_sdk.backends.openvino import OpenVinoBackend
     from kvtracker_sdk.backends.simulated import SimulatedBackend
     from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
@@ -103,6 +104,7 @@ _LAZY: dict[str, str] = {
     "load_map": "kvtracker_sdk.io.map_file",
     "read_map_info": "kvtracker_sdk.io.map_file",
     "OnnxBackend": "kvtracker_sdk.backends.onnx",  # onnxruntime is imported when one is made
+    "OpenVinoBackend": "kvtracker_sdk.backends.openvino",  # openvino too
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Tracker": "kvtracker_sdk.tracking.tracker",
@@ -160,6 +162,7 @@ __all__ = [
     "ModelError",
     "NonFiniteImageError",
     "OnnxBackend",
+    "OpenVinoBackend",
     "OutputError",
     "PinholeIntrinsics",
     "Pose",

@@ -26,15 +26,18 @@ def test_every_error_derives_from_the_root() -> None:
 
 
 def test_import_is_cheap() -> None:
-    code = "import sys, kvtracker_sdk; print(any(m in sys.modules for m in ('torch', 'cv2', 'onnxruntime')))"
+    code = "import sys, kvtracker_sdk; print(any(m in sys.modules for m in ('torch', 'cv2', 'onnxruntime', 'openvino')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
 
-def test_onnx_backend_imports_onnxruntime_only_when_one_is_made() -> None:
-    code = "import sys, kvtracker_sdk; kvtracker_sdk.OnnxBackend; print('onnxruntime' in sys.modules)"
+def test_graph_backends_import_their_runtime_only_when_one_is_made() -> None:
+    code = (
+        "import sys, kvtracker_sdk; kvtracker_sdk.OnnxBackend; kvtracker_sdk.OpenVinoBackend; "
+        "print([m for m in ('onnxruntime', 'openvino') if m in sys.modules])"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+    assert out.stdout.strip() == "[]"
 
 
 def test_library_is_silent_by_default() -> None:
@@ -103,6 +106,7 @@ PUBLIC_API = [
     "ModelError",
     "NonFiniteImageError",
     "OnnxBackend",
+    "OpenVinoBackend",
     "OutputError",
     "PinholeIntrinsics",
     "Pose",

@@ -18,7 +18,7 @@ __all__ = ["BackendInfo"]
 class BackendInfo:
     """Identity and properties of a backend."""
 
-    backend: str  # runtime: "torch", "onnx", "simulated"
+    backend: str  # runtime: "torch", "onnx", "openvino", "simulated"
     model: str  # e.g. "pi3", "da3-small", "pi3-custom"
     family: str  # "pi3", "da3", "simulated": caches never cross families
     config_hash: str  # hash of the architecture configuration

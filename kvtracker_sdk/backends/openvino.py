@@ -1,0 +1,79 @@
+"""``OpenVinoBackend``: the ``Backend`` contract served by OpenVINO from an exported folder.
+
+    backend = OpenVinoBackend("da3-small-onnx/")                         # fp32, CPU
+    backend = OpenVinoBackend("da3-small-onnx/", precision="bfloat16", threads=2)
+    backend = openvino_backend("da3-small")   # kvtracker_sdk.export_onnx: exported once
+    mapped = backend.map(keyframes)           # uint8 [N, H, W, 3] at model resolution
+    result = backend.track(frame, mapped.cache, heads=HeadSet.CAMERA)
+
+OpenVINO (Apache-2.0) runs on the CPUs, integrated GPUs and NPUs AR and robot apps ship on. This
+backend serves the same export folder as ``OnnxBackend`` (``kvtracker export-onnx``; both
+families), verified file by file against the manifest's sha256 before OpenVINO reads it, with
+the cache as graph inputs (``ExportBackend``: the shared part). Its ``info.fingerprint`` and
+``info.layout`` are the manifest's, equal to ``TorchBackend``'s and ``OnnxBackend``'s for the
+same weights, and its cache is float32 on the CPU whatever the precision hint, so a tracker swaps
+between torch, onnx and openvino live and maps saved by one load in the others.
+
+``precision`` "float32" (default) computes the export's function within float rounding;
+"bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
+``openvino_runtime``). ``info.accelerations`` reports what the plugin chose: device, precision,
+threads.
+
+openvino is imported when a backend is created (``MissingDependencyError`` names the
+``[openvino]`` extra without it). PyTorch is still needed for the ``KVCache`` itself.
+"""
+
+from __future__ import annotations
+
+import os
+
+from kvtracker_sdk.backends.export_backend import ExportBackend, export_folder
+from kvtracker_sdk.backends.openvino_runtime import OpenVinoRunner
+
+__all__ = ["OpenVinoBackend"]
+
+
+class OpenVinoBackend(ExportBackend):
+    """Pi3 or Depth Anything 3 on OpenVINO; implements ``kvtracker_sdk.backends.base.Backend``.
+
+    ``folder``: an export (``kvtracker export-onnx``); its files must match the sha256 digests
+    of its manifest (``ModelError`` otherwise). ``device``: "cpu" (default), "gpu[:N]" or "npu"
+    where OpenVINO sees one. ``precision``: "float32" (default), "bfloat16" or "float16" (the
+    inference precision hint; the cache stays float32). ``threads``: CPU inference threads
+    (None: one per physical core).
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike[str],
+        *,
+        device: str = "cpu",
+        precision: str = "float32",
+        threads: int | None = None,
+    ) -> None:
+        super().__init__(folder)
+        runner = OpenVinoRunner(
+            self.folder, self.manifest, device=device, precision=precision, threads=threads
+        )
+        # the cache stays on the host whatever the device: OpenVINO reads host memory
+        info = self.manifest.backend_info(
+            backend="openvino", device="cpu", accelerations=runner.accelerations
+        )
+        self._serve(runner, info)
+
+    @classmethod
+    def from_pretrained(
+        cls,
+        source: str | os.PathLike[str],
+        *,
+        device: str = "cpu",
+        precision: str = "float32",
+        threads: int | None = None,
+    ) -> OpenVinoBackend:
+        """An export folder (as ``TorchBackend.from_pretrained`` takes a checkpoint).
+
+        A checkpoint is exported by a layer above this one: ``kvtracker_sdk.export_onnx.
+        openvino_backend(checkpoint)`` exports it once into a cache folder and serves the export
+        (``kvtracker track --backend openvino --weights model.safetensors`` does that).
+        """
+        return cls(export_folder(source), device=device, precision=precision, threads=threads)

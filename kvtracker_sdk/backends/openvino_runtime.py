@@ -1,0 +1,185 @@
+"""OpenVINO compiled models of an export folder, chained into mapping and tracking passes.
+
+``OpenVinoRunner`` is the ``GraphRunner`` (``graph_runner``: the passes, in numpy) whose graphs
+OpenVINO reads from the export's ``.onnx`` files (its ONNX frontend; the weights stay in the
+shared ``weights.bin``; ``openvino_graph`` fixes the one node it reads differently) and
+compiles for a device.
+
+Choices, and why:
+- ``INFERENCE_PRECISION_HINT``: "float32" computes the export's function within float rounding
+  (the default: it is what the golden tolerances hold for); "bfloat16" lets the CPU plugin run
+  matrix products in bf16 where the CPU has them (AVX512-BF16, AMX), accumulating in fp32.
+  Inputs and outputs stay float32 either way, so the cache does too: a bf16 OpenVINO backend
+  shares caches and maps with every float32 backend of the same weights. The precision the
+  plugin actually chose is read back from the compiled model and reported (a CPU without bf16
+  computes in f32; OpenVINO's CPU plugin computes an f16 hint in bf16).
+- ``PERFORMANCE_HINT=LATENCY``: one stream, one request at a time (a tracker runs one frame at a
+  time); ``INFERENCE_NUM_THREADS`` = ``threads`` (None: the plugin's choice, one per physical
+  core), read back and reported.
+- Inputs are shared, not copied (``share_inputs=True``): the cache's float32 buffers are
+  C-contiguous and read in place, whatever their scratch capacity. Outputs are copied (the next
+  inference would overwrite them).
+- One inference request per graph per thread: a tracker maps (rebuilds) on a worker thread while
+  it tracks on another, and both passes run the encoder and the heads; an OpenVINO request must
+  not run twice at once, a compiled model may serve several requests.
+
+Telemetry off: ``import openvino`` itself initialises OpenVINO's telemetry and sends an
+"import" event to Google Analytics (``openvino/tools/ovc/__init__.py``, with the opt-in dialog
+disabled: it sends unless the user opted out with ``opt_in_out --opt_out``), and writes a client
+id under ``~/intel``. ``import_openvino`` imports openvino with ``openvino_telemetry`` hidden
+from the import system, so that OpenVINO takes its own no-op stub (the path it takes when the
+telemetry package is not installed); the package is visible again afterwards. The runtime itself
+(``Core``, ``read_model``, ``compile_model``, inference) collects nothing. If the application
+imported openvino before, the event was sent then: this SDK cannot take it back.
+``tests/backends/test_openvino_network.py`` checks that importing, compiling and running make
+no telemetry call and open no socket that is not loopback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kvtracker_sdk.backends.graph_runner import GraphRunner
+from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
+from kvtracker_sdk.backends.openvino_graph import read_graph
+from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
+
+__all__ = ["PRECISIONS", "OpenVinoRunner", "compile_config", "import_openvino", "openvino_device"]
+
+# SDK dtype name -> OpenVINO's inference precision hint
+PRECISIONS = {"float32": "f32", "bfloat16": "bf16", "float16": "f16"}
+_DEVICES = {"cpu": "CPU", "gpu": "GPU", "npu": "NPU"}
+
+
+_TELEMETRY = "openvino_telemetry"
+_ABSENT = object()
+_import_lock = threading.Lock()
+
+
+def import_openvino() -> Any:
+    """The ``openvino`` module imported without its telemetry (see the module docstring), or
+    ``MissingDependencyError`` naming the ``[openvino]`` extra."""
+    with _import_lock:
+        first = "openvino" not in sys.modules
+        saved = sys.modules.get(_TELEMETRY, _ABSENT)
+        if first:
+            sys.modules[_TELEMETRY] = None  # type: ignore[assignment]  # import -> ImportError
+        try:
+            return importlib.import_module("openvino")
+        except ImportError as exc:
+            raise MissingDependencyError(
+                "the OpenVINO backend needs openvino: pip install 'kvtracker-sdk[openvino]' "
+                f"({exc})"
+            ) from exc
+        finally:
+            if first and saved is _ABSENT:
+                sys.modules.pop(_TELEMETRY, None)
+            elif first:
+                sys.modules[_TELEMETRY] = saved  # type: ignore[assignment]
+
+
+def openvino_device(device: str, available: list[str]) -> str:
+    """SDK device name ("cpu", "gpu[:N]", "npu") -> OpenVINO's ("CPU", "GPU.N", "NPU").
+
+    ``ConfigError`` for an unknown name; ``MissingDependencyError`` when OpenVINO sees no such
+    device here (``available``: ``Core().available_devices``; a GPU or NPU needs its driver).
+    """
+    kind, _, index = device.lower().partition(":")
+    if kind not in _DEVICES or (index and not index.isdigit()):
+        raise ConfigError(
+            f"unknown OpenVINO device {device!r}; expected one of {sorted(_DEVICES)} (gpu:N too)"
+        )
+    name = _DEVICES[kind] + (f".{index}" if index else "")
+    seen = set(available) | {d.split(".")[0] for d in available}  # "GPU" when "GPU.0" is there
+    if name not in seen:
+        raise MissingDependencyError(
+            f"OpenVINO sees no {name} device here (available: {available}); install its driver"
+        )
+    return name
+
+
+def compile_config(device: str, precision: str, threads: int | None) -> dict[str, Any]:
+    """Compile properties for one tracking loop on ``device`` (see the module docstring)."""
+    if precision not in PRECISIONS:
+        raise ConfigError(f"unknown precision {precision!r}; expected one of {sorted(PRECISIONS)}")
+    if threads is not None and threads < 1:
+        raise ConfigError(f"threads must be >= 1, got {threads}")
+    config: dict[str, Any] = {
+        "INFERENCE_PRECISION_HINT": PRECISIONS[precision],
+        "PERFORMANCE_HINT": "LATENCY",
+    }
+    if device == "CPU" and threads is not None:
+        config["INFERENCE_NUM_THREADS"] = threads
+    return config
+
+
+class OpenVinoRunner(GraphRunner):
+    """One OpenVINO compiled model per graph of an export; mapping and tracking passes in numpy.
+
+    ``device``: "cpu" (default), "gpu[:N]", "npu"; ``precision``: a key of ``PRECISIONS``;
+    ``threads``: CPU inference threads (None: one per physical core).
+    """
+
+    def __init__(
+        self,
+        folder: str | Path,
+        manifest: OnnxManifest,
+        *,
+        device: str = "cpu",
+        precision: str = "float32",
+        threads: int | None = None,
+    ) -> None:
+        super().__init__(manifest)
+        ov = import_openvino()
+        folder = Path(folder)
+        core = ov.Core()
+        self.device = openvino_device(device, list(core.available_devices))
+        config = compile_config(self.device, precision, threads)
+        try:
+            self._compiled = {
+                name: core.compile_model(read_graph(core, folder / spec.file), self.device, config)
+                for name, spec in manifest.graphs.items()
+            }
+        except Exception as exc:  # OpenVINO raises RuntimeError/its own for unreadable graphs
+            raise BackendError(f"OpenVINO cannot compile the graphs in {folder}: {exc}") from exc
+        for name, compiled in self._compiled.items():
+            self._check_names(name, compiled)
+        track = self._compiled["decoder_track"]
+        self.precision = str(track.get_property("INFERENCE_PRECISION_HINT").get_type_name())
+        cpu = self.device == "CPU"
+        self.threads = int(track.get_property("INFERENCE_NUM_THREADS")) if cpu else 0
+        self._requests = threading.local()  # graph name -> this thread's InferRequest
+
+    def _check_names(self, graph: str, compiled: Any) -> None:
+        """The compiled graph takes and returns the tensors its manifest names."""
+        inputs = {name for port in compiled.inputs for name in port.get_names()}
+        outputs = {name for port in compiled.outputs for name in port.get_names()}
+        missing = sorted(set(self._inputs[graph]) - inputs)
+        missing += sorted(set(self._outputs[graph]) - outputs)
+        if missing:
+            raise BackendError(f"OpenVINO's {graph!r} graph lacks the manifest's tensors {missing}")
+
+    @property
+    def accelerations(self) -> tuple[str, ...]:
+        """What runs the graphs: device, precision chosen by the plugin, CPU threads."""
+        names = (f"openvino:{self.device}", f"precision:{self.precision}")
+        return names + ((f"threads:{self.threads}",) if self.device == "CPU" else ())
+
+    def _request(self, graph: str) -> Any:
+        requests: dict[str, Any] = self._requests.__dict__
+        if graph not in requests:
+            requests[graph] = self._compiled[graph].create_infer_request()
+        return requests[graph]
+
+    def _run(self, graph: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        try:
+            results = self._request(graph).infer(feeds, share_inputs=True, share_outputs=False)
+            return {name: np.asarray(results[name]) for name in self._outputs[graph]}
+        except Exception as exc:  # OpenVINO's exceptions are not part of our API
+            raise BackendError(f"OpenVINO failed in graph {graph!r}: {exc}") from exc
