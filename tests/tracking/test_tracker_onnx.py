@@ -1,15 +1,19 @@
-"""A tracker session on the 20 real TUM frames: ONNX Runtime, PyTorch, and a live swap between them.
+"""A tracker session on the 20 real TUM frames: PyTorch, ONNX Runtime, OpenVINO, and live swaps.
 
 Both families, with their golden (small, random) weights exported once per test session
-(``onnx_exports``, shared with every test that needs an export) — Pi3 and Depth Anything 3
-(``family`` parametrises the module's fixtures). Both runtimes compute the same fp32 function, so every pose agrees within 1e-4 (the issue's tolerance) whichever
-backend tracked it and whichever built the map. Keyframes every 5 frames: 4 mapping passes, so
-maps made by one runtime are tracked and rebuilt by the other after the swap.
+(``onnx_exports``, shared with every test that needs an export; ONNX Runtime and OpenVINO serve
+the same export) — Pi3 and Depth Anything 3 (``family`` parametrises the module's fixtures). The
+runtimes compute the same fp32 function, so every pose agrees within 1e-4 (the issue's
+tolerance) whichever backend tracked it and whichever built the map. Keyframes every 5 frames: 4
+mapping passes, so maps made by one runtime are tracked and rebuilt by the other after the swap.
+OpenVINO joins a chain of swaps (torch, then openvino from frame 8, then onnx from frame 14: it
+tracks and rebuilds a torch map, and onnx tracks its maps) and the relocalisation; a whole
+OpenVINO session would add nothing these do not run.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import cv2
@@ -18,16 +22,17 @@ import pytest
 
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.backends.onnx import OnnxBackend
+from kvtracker_sdk.backends.openvino import OpenVinoBackend
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, TrackingState
 from tests.conftest import OnnxExport
-from tests.helpers import shared_path
+from tests.helpers import dev_dependency, shared_path
 
 CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 5}}
-SWAP_AT = 8  # between two keyframes: the swap keeps a map built by the other runtime
+SWAPS_AT = (8, 14)  # between keyframes: each swap keeps a map built by the runtime before
 
 
 @pytest.fixture(scope="module")
@@ -55,6 +60,24 @@ def make_onnx(family: str, onnx_exports: Callable[[str], OnnxExport]) -> Callabl
 
 
 @pytest.fixture(scope="module")
+def make_openvino(
+    family: str, onnx_exports: Callable[[str], OnnxExport]
+) -> Callable[[], OpenVinoBackend]:
+    dev_dependency("openvino")
+    folder = onnx_exports(family).folder  # the same export ONNX Runtime serves
+    return lambda: OpenVinoBackend(folder, threads=1)
+
+
+@pytest.fixture(scope="module")
+def makers(
+    make_torch: Callable[[], TorchBackend],
+    make_onnx: Callable[[], OnnxBackend],
+    make_openvino: Callable[[], OpenVinoBackend],
+) -> dict[str, Callable[[], Backend]]:
+    return {"torch": make_torch, "onnx": make_onnx, "openvino": make_openvino}
+
+
+@pytest.fixture(scope="module")
 def make_pi3_onnx(golden_onnx_dir: Path) -> Callable[[], OnnxBackend]:
     return lambda: OnnxBackend(golden_onnx_dir, threads=1)
 
@@ -62,14 +85,15 @@ def make_pi3_onnx(golden_onnx_dir: Path) -> Callable[[], OnnxBackend]:
 def run(
     frames: list[tuple[float, np.ndarray]],
     first: Backend,
-    swap_to: Callable[[], Backend] | None = None,
+    swaps: Sequence[Callable[[], Backend]] = (),
 ) -> tuple[list[FrameResult], list[str]]:
-    """Push every frame; with ``swap_to``, swap backends before frame ``SWAP_AT``."""
+    """Push every frame; swap to ``swaps[i]()`` before frame ``SWAPS_AT[i]``."""
     results, runtimes = [], []
+    swap_at = dict(zip(SWAPS_AT[: len(swaps)], swaps, strict=True))
     with Tracker(TrackerConfig.from_dict(CONFIG), first) as tracker:
         for index, (stamp, image) in enumerate(frames):
-            if swap_to is not None and index == SWAP_AT:
-                tracker.set_backend(swap_to()).close()
+            if index in swap_at:
+                tracker.set_backend(swap_at[index]()).close()
             results.append(tracker.push_frame(image, timestamp=stamp))
             runtimes.append(tracker.backend.info.backend)
         tracker.backend.close()
@@ -106,20 +130,18 @@ def test_onnx_session_gives_the_torch_poses(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("direction", ["torch->onnx", "onnx->torch"])
+@pytest.mark.parametrize("direction", ["torch->onnx", "onnx->torch", "torch->openvino->onnx"])
 def test_live_swap_keeps_the_map_and_the_poses(
     frames: list[tuple[float, np.ndarray]],
-    make_torch: Callable[[], TorchBackend],
-    make_onnx: Callable[[], OnnxBackend],
+    makers: dict[str, Callable[[], Backend]],
     torch_session: list[FrameResult],
     direction: str,
 ) -> None:
-    first, second = (
-        (make_torch, make_onnx) if direction == "torch->onnx" else (make_onnx, make_torch)
-    )
-    results, runtimes = run(frames, first(), swap_to=second)
     names = direction.split("->")
-    assert runtimes == [names[0]] * SWAP_AT + [names[1]] * (len(frames) - SWAP_AT)
+    results, runtimes = run(frames, makers[names[0]](), [makers[name] for name in names[1:]])
+    bounds = (0, *SWAPS_AT[: len(names) - 1], len(frames))
+    segments = zip(names, bounds, bounds[1:], strict=False)  # bounds has one more entry
+    assert runtimes == [name for name, start, end in segments for _ in range(start, end)]
     assert_same_poses(results, torch_session)
 
 
@@ -140,24 +162,23 @@ def test_swap_to_other_weights_is_refused(
 
 
 @pytest.mark.slow
-def test_a_map_saved_on_one_runtime_relocalises_on_the_other(
+def test_a_map_saved_on_one_runtime_relocalises_on_the_others(
     frames: list[tuple[float, np.ndarray]],
-    make_torch: Callable[[], TorchBackend],
-    make_onnx: Callable[[], OnnxBackend],
+    makers: dict[str, Callable[[], Backend]],
     tmp_path: Path,
 ) -> None:
     path = tmp_path / "room.kvmap"
-    with Tracker(TrackerConfig.from_dict(CONFIG), make_torch()) as tracker:
+    with Tracker(TrackerConfig.from_dict(CONFIG), makers["torch"]()) as tracker:
         for stamp, image in frames[:12]:
             tracker.push_frame(image, timestamp=stamp)
         tracker.save_map(path)
         tracker.backend.close()
-    sessions = []
-    for make in (make_torch, make_onnx):  # the next session, on either runtime
+    sessions = {}
+    for name, make in makers.items():  # the next session, on each runtime
         backend = make()
         with Tracker.from_map(path, backend) as tracker:
-            sessions.append([tracker.push_frame(image, timestamp=t) for t, image in frames[12:]])
+            sessions[name] = [tracker.push_frame(image, timestamp=t) for t, image in frames[12:]]
         backend.close()
-    on_torch, on_onnx = sessions
-    assert on_onnx[0].state is TrackingState.RELOCALIZING  # a loaded map relocalises first
-    assert_same_poses(on_onnx, on_torch)
+    for name in ("onnx", "openvino"):
+        assert sessions[name][0].state is TrackingState.RELOCALIZING  # relocalises first
+        assert_same_poses(sessions[name], sessions["torch"])
