@@ -1,8 +1,10 @@
 """``--backend`` / ``--weights`` / ``--device`` / ``--dtype`` -> a ``Backend`` for ``kvtracker track``.
 
 Each runtime is imported only when chosen: the PyTorch backend loads the checkpoint (a
-``.safetensors`` file, a folder holding one, or a hub id such as ``yyfz233/Pi3``); the ONNX
-backend loads exported graphs (``kvtracker export-onnx``) from ``--weights``.
+``.safetensors`` file, a folder holding one, or a hub id such as ``yyfz233/Pi3``); the ONNX and
+OpenVINO backends load exported graphs (``kvtracker export-onnx``) from ``--weights``, or export
+a checkpoint there once. OpenVINO takes ``--dtype bfloat16`` as its precision hint (its cache
+stays float32) and ``--threads`` as its inference threads.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ DEFAULT_WEIGHTS = "yyfz233/Pi3"  # the official Pi3 checkpoint on the Hugging Fa
 class BackendKind(str, enum.Enum):
     TORCH = "torch"
     ONNX = "onnx"
+    OPENVINO = "openvino"
 
 
 class ComputeDtype(str, enum.Enum):
@@ -42,8 +45,8 @@ def open_backend(
 ) -> Backend:
     """The backend of ``kind`` over ``weights``; typed errors for missing runtimes or weights.
 
-    ``threads`` sets torch's intra-op CPU threads (process-wide: the CLI owns the process); the
-    ONNX backend chooses its own.
+    ``threads`` sets torch's intra-op CPU threads (process-wide: the CLI owns the process) or
+    OpenVINO's inference threads; the ONNX backend chooses its own.
     """
     dtype_name = ComputeDtype(dtype).value
     if threads is not None and threads < 1:
@@ -69,4 +72,16 @@ def open_backend(
             ) from exc
         backend: Backend = module.onnx_backend(weights, device=device)
         return backend
+    if kind is BackendKind.OPENVINO:
+        try:  # openvino itself is imported when the backend is made (MissingDependencyError)
+            module = importlib.import_module("kvtracker_sdk.export_onnx.reuse")
+        except ImportError as exc:
+            raise MissingDependencyError(
+                f"the OpenVINO backend cannot be imported: {exc}; pip install "
+                "'kvtracker-sdk[openvino]'"
+            ) from exc
+        served: Backend = module.openvino_backend(
+            weights, device=device, precision=dtype_name, threads=threads
+        )
+        return served
     raise ConfigError(f"unknown backend {kind!r}")  # pragma: no cover - typer checks the choice

@@ -35,10 +35,12 @@ def track(
     weights: Annotated[str, typer.Option(
         help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
     backend: Annotated[BackendKind, typer.Option(help="Inference runtime.")] = BackendKind.TORCH,
-    device: Annotated[str, typer.Option(help="cpu, cuda, cuda:1, ...")] = "cpu",
-    dtype: Annotated[ComputeDtype, typer.Option(help="Compute dtype (torch).")] = ComputeDtype.FLOAT32,
+    device: Annotated[str, typer.Option(
+        help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
+    dtype: Annotated[ComputeDtype, typer.Option(
+        help="Compute dtype (torch), precision hint (openvino).")] = ComputeDtype.FLOAT32,
     threads: Annotated[int | None, typer.Option(
-        help="CPU threads for inference (torch). [default: torch's choice]")] = None,
+        help="CPU threads for inference (torch, openvino). [default: the runtime's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
         help="Model input side d (224, 308, 504, 518): Pi3 at most d² pixels, DA3 the longest "
              "side. [default: the family's, Pi3 308, DA3 504]")] = None,
@@ -166,9 +168,9 @@ def _check_object_inputs(
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:
     """``open_backend`` under a spinner; exporting a checkpoint to ONNX (minutes for a full
     model, on first use) is also announced as a line when stderr is not a terminal."""
-    if kind is BackendKind.ONNX and not _is_onnx_export(weights):
-        text = (f"exporting {weights} to ONNX Runtime (first use only: the export is cached; "
-                "minutes for a full model)")
+    if kind in (BackendKind.ONNX, BackendKind.OPENVINO) and not _is_onnx_export(weights):
+        text = (f"exporting {weights} to ONNX for {kind.value} (first use only: the export is "
+                "cached; minutes for a full model)")
         with busy(state, text, announce=True):
             return open_backend(kind, weights, **options)
     with busy(state, f"loading the weights {weights}"):

@@ -1,8 +1,8 @@
 """Export tooling: Pi3 or Depth Anything 3 to a folder of ONNX graphs + ``manifest.json`` (served by ``OnnxBackend``).
 
 Needs the ``[onnx]`` extra (onnx, onnxscript, onnx-ir, onnxruntime) and PyTorch; the command
-line is ``kvtracker export-onnx``. See ``exporter.py``; ``onnx_backend(checkpoint)`` (``reuse.py``)
-exports a checkpoint once and serves it.
+line is ``kvtracker export-onnx``. See ``exporter.py``; ``onnx_backend(checkpoint)`` and
+``openvino_backend(checkpoint)`` (``reuse.py``) export a checkpoint once and serve it.
 """
 
 from kvtracker_sdk.export_onnx.exporter import (
@@ -11,7 +11,7 @@ from kvtracker_sdk.export_onnx.exporter import (
     export_model,
     export_onnx,
 )
-from kvtracker_sdk.export_onnx.reuse import exported_folder, onnx_backend
+from kvtracker_sdk.export_onnx.reuse import exported_folder, onnx_backend, openvino_backend
 
 __all__ = [
     "DEFAULT_CHECK_SIZE",
@@ -20,4 +20,5 @@ __all__ = [
     "export_onnx",
     "exported_folder",
     "onnx_backend",
+    "openvino_backend",
 ]

@@ -1,4 +1,6 @@
-"""Checkpoints exported once and reused: ``onnx_backend(checkpoint)`` serves an ``OnnxBackend``.
+"""Checkpoints exported once and reused: ``onnx_backend(checkpoint)`` serves an ``OnnxBackend``,
+``openvino_backend(checkpoint)`` an ``OpenVinoBackend`` (the same export: exporting needs the
+``[onnx]`` extra once, serving it with OpenVINO only ``[openvino]``).
 
 ``exported_folder(weights)`` loads a checkpoint of either family (model name, ``.safetensors``
 file, folder or hub id), and returns ``<cache_dir>/<family>-<weights fingerprint>``, exporting into it first unless an export
@@ -19,12 +21,13 @@ from typing import Any
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, read_manifest
+from kvtracker_sdk.backends.openvino import OpenVinoBackend
 from kvtracker_sdk.errors import ModelError
 from kvtracker_sdk.export_onnx.exporter import export_model
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.registry import load_model
 
-__all__ = ["default_cache_dir", "exported_folder", "onnx_backend"]
+__all__ = ["default_cache_dir", "exported_folder", "onnx_backend", "openvino_backend"]
 
 _log = get_logger(__name__)
 
@@ -73,7 +76,32 @@ def onnx_backend(
     name such as ``da3-small``, file, folder or hub id) exported on first use into
     ``cache_dir`` (``exported_folder``; that first call takes minutes for the full model).
     Deployments ship the export folder."""
+    folder = _export_of(source, cache_dir)
+    return OnnxBackend(folder, device=device, providers=providers, threads=threads)
+
+
+def openvino_backend(
+    source: str | os.PathLike[str],
+    *,
+    device: str = "cpu",
+    precision: str = "float32",
+    threads: int | None = None,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> OpenVinoBackend:
+    """An ``OpenVinoBackend`` over an export folder, or over a checkpoint exported on first use
+    into ``cache_dir`` as ``onnx_backend`` does (the same folder serves both runtimes).
+
+        backend = openvino_backend("da3-small", precision="bfloat16", threads=2)
+    """
+    folder = _export_of(source, cache_dir)
+    return OpenVinoBackend(folder, device=device, precision=precision, threads=threads)
+
+
+def _export_of(
+    source: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None
+) -> Path:
+    """``source`` itself when it is an export folder, else its checkpoint's export."""
     folder = Path(source)
     if not (folder / MANIFEST_NAME).is_file():
         folder = exported_folder(source, cache_dir=cache_dir)
-    return OnnxBackend(folder, device=device, providers=providers, threads=threads)
+    return folder

@@ -234,3 +234,23 @@ def test_changed_weights_are_refused_before_openvino_reads_them(
     (weights * np.float32(1.5)).tofile(copied / WEIGHTS_NAME)
     with pytest.raises(ModelError, match=r"\['weights.bin'\] changed since the export"):
         OpenVinoBackend(copied)
+
+
+def test_a_checkpoint_is_exported_once_and_served(
+    pi3_folder: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from kvtracker_sdk.export_onnx import reuse
+
+    exports: list[Path] = []
+
+    def export(model: object, folder: Path, **options: object) -> None:  # the real one: 30 s
+        exports.append(folder)
+        shutil.copytree(pi3_folder, folder, dirs_exist_ok=True)
+
+    monkeypatch.setattr(reuse, "export_model", export)
+    weights = shared_path("golden", "pi3", "weights.safetensors")
+    backend = reuse.openvino_backend(weights, cache_dir=tmp_path, threads=1)
+    assert exports == [backend.folder] and backend.folder.parent == tmp_path
+    assert backend.info.fingerprint == TorchBackend.from_pretrained(weights).info.fingerprint
+    assert reuse.onnx_backend(weights, cache_dir=tmp_path, threads=1).folder == backend.folder
+    assert exports == [backend.folder]  # the export serves both runtimes

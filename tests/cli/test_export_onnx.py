@@ -22,6 +22,7 @@ from kvtracker_sdk.cli.failures import ExitCode
 from kvtracker_sdk.errors import ConfigError
 from tests.cli.invoke import invoke
 from tests.conftest import OnnxExport
+from tests.helpers import dev_dependency
 from tests.models.da3.factories import tiny_config as tiny_da3_config
 from tests.models.pi3.factories import tiny_config
 
@@ -115,6 +116,30 @@ def test_track_with_the_onnx_backend(
     assert result.exit_code == 0, result.output
     lines = (tmp_path / "run" / "trajectory.txt").read_text().splitlines()
     assert len([line for line in lines if not line.startswith("#")]) == 4  # a pose per frame
+
+
+@pytest.mark.slow
+def test_track_with_the_openvino_backend(
+    onnx_exports: Callable[[str], OnnxExport], tmp_path: Path
+) -> None:
+    import cv2
+
+    dev_dependency("openvino")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    rng = np.random.default_rng(0)
+    for index in range(4):
+        cv2.imwrite(str(frames / f"{index:03d}.png"), rng.integers(0, 256, (60, 80, 3), np.uint8))
+    result = invoke(
+        "track", frames, "--backend", "openvino", "--weights", onnx_exports("da3").folder,
+        "--dtype", "bfloat16", "--threads", "1", "--resolution", "224",
+        "--keyframe-interval", "2", "--out", tmp_path / "run",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    lines = (tmp_path / "run" / "trajectory.txt").read_text().splitlines()
+    assert len([line for line in lines if not line.startswith("#")]) == 4  # a pose per frame
+    backend = json.loads((tmp_path / "run" / "run.json").read_text())["backend"]
+    assert backend["runtime"] == "openvino" and "threads:1" in backend["accelerations"]
 
 
 def test_usage_errors_exit_with_the_config_code(tmp_path: Path) -> None:
