@@ -96,48 +96,42 @@ def test_random_weights_export_of_a_config_file(
     assert call["weights_fingerprint"] == fingerprint
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("family", FAMILIES)
-def test_track_with_the_onnx_backend(
-    onnx_exports: Callable[[str], OnnxExport], family: str, tmp_path: Path
-) -> None:
+def track_four_frames(tmp_path: Path, *options: object) -> list[str]:
+    """``kvtracker track`` over 4 random 60 x 80 frames with ``options``: its pose lines."""
     import cv2
 
-    out = onnx_exports(family).folder
     frames = tmp_path / "frames"
     frames.mkdir()
     rng = np.random.default_rng(0)
     for index in range(4):
         cv2.imwrite(str(frames / f"{index:03d}.png"), rng.integers(0, 256, (60, 80, 3), np.uint8))
     result = invoke(
-        "track", frames, "--backend", "onnx", "--weights", out, "--resolution", "224",
-        "--keyframe-interval", "2", "--out", tmp_path / "run",
+        "track", frames, *options, "--resolution", "224", "--keyframe-interval", "2",
+        "--out", tmp_path / "run",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     lines = (tmp_path / "run" / "trajectory.txt").read_text().splitlines()
-    assert len([line for line in lines if not line.startswith("#")]) == 4  # a pose per frame
+    return [line for line in lines if not line.startswith("#")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILIES)
+def test_track_with_the_onnx_backend(
+    onnx_exports: Callable[[str], OnnxExport], family: str, tmp_path: Path
+) -> None:
+    out = onnx_exports(family).folder
+    poses = track_four_frames(tmp_path, "--backend", "onnx", "--weights", out)
+    assert len(poses) == 4  # a pose per frame
 
 
 @pytest.mark.slow
 def test_track_with_the_openvino_backend(
     onnx_exports: Callable[[str], OnnxExport], tmp_path: Path
 ) -> None:
-    import cv2
-
     dev_dependency("openvino")
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    rng = np.random.default_rng(0)
-    for index in range(4):
-        cv2.imwrite(str(frames / f"{index:03d}.png"), rng.integers(0, 256, (60, 80, 3), np.uint8))
-    result = invoke(
-        "track", frames, "--backend", "openvino", "--weights", onnx_exports("da3").folder,
-        "--dtype", "bfloat16", "--threads", "1", "--resolution", "224",
-        "--keyframe-interval", "2", "--out", tmp_path / "run",
-    )  # fmt: skip
-    assert result.exit_code == 0, result.output
-    lines = (tmp_path / "run" / "trajectory.txt").read_text().splitlines()
-    assert len([line for line in lines if not line.startswith("#")]) == 4  # a pose per frame
+    out = onnx_exports("da3").folder
+    options = ("--backend", "openvino", "--weights", out, "--dtype", "bfloat16", "--threads", "1")
+    assert len(track_four_frames(tmp_path, *options)) == 4  # a pose per frame
     backend = json.loads((tmp_path / "run" / "run.json").read_text())["backend"]
     assert backend["runtime"] == "openvino" and "threads:1" in backend["accelerations"]
 
