@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.cache.backend_info import BackendInfo
-from kvtracker_sdk.cache.quantization import QUANTIZED_STORAGES
 from kvtracker_sdk.cache.kv_cache import CacheLayout
+from kvtracker_sdk.cache.quantization import QUANTIZED_STORAGES
 from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, MapVersionError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource

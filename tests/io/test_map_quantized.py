@@ -1,21 +1,33 @@
 """Map files of quantised caches (format version 2), and maps of every older version.
 
-The old-version fixtures are made here, not committed: a dense map is written as version 1 (the
+A quantised map saved by the golden Pi3 and loaded in a new process tracks bit for bit as its
+cache did before saving. The old-version fixtures are made here, not committed: a dense map is written as version 1 (the
 oldest version that holds it), and a version-1 file is also rebuilt from a new one by editing its
 header (re-sealed), so each readable version is loaded from bytes this test wrote.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.errors import MapFormatError
+from kvtracker_sdk.eval.cache_deviation import tum_frames
+from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
 from kvtracker_sdk.io.map_schema import FORMAT_VERSION, OLDEST_READABLE_VERSION
+from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.types import HeadSet
+from tests.helpers import PROJECT_ROOT, shared_path
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map, maps_equal, rewrite_header
 
 STORAGES = ("int8", "float8_e4m3fn")
@@ -89,3 +101,57 @@ def test_a_quantised_cache_needs_version_2_and_its_scale_description(tmp_path: P
         cache_quantization=json.dumps({"scale_dtype": "float8_e5m2"}))))  # fmt: skip
     with pytest.raises(MapFormatError, match="has no 'cache_quantization'"):
         read_map_info(extra)
+
+
+_TRACK_CHILD = """
+import hashlib, json, sys
+import numpy as np, torch
+torch.set_num_threads(1)
+from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.types import HeadSet
+path, weights, frame = sys.argv[1:4]
+backend = TorchBackend.from_pretrained(weights)
+kf_map = load_map(path, expected_backend=backend.info).keyframe_map
+result = backend.track(np.load(frame), kf_map.cache, heads=HeadSet.ALL)
+print(json.dumps({"storage": kf_map.cache.storage, "pose": result.pose.tobytes().hex(),
+                  "points": hashlib.sha256(result.local_points.tobytes()).hexdigest()}))
+"""
+
+
+def test_a_quantised_map_tracks_identically_in_a_new_process(tmp_path: Path) -> None:
+    storage = "int8"  # fp8 maps take the same path (their round trip is bit for bit above)
+    weights = shared_path("golden", "pi3", "weights.safetensors")
+    frames = tum_frames(list(TumSource(shared_path("data", "tum_fr2_desk")))[:3], "pi3",
+                        resolution=224)  # fmt: skip
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the child's count: the same kernels, bit for bit
+    try:
+        backend = TorchBackend.from_pretrained(weights)
+        mapped = backend.map(frames[:2])
+        cache = mapped.cache.to(storage=storage)
+        keyframes = tuple(
+            Keyframe(keyframe_id=i, frame_index=i, timestamp=None, image=frames[i], mask=None,
+                     T_world_cam=mapped.poses[i], confidence_map=mapped.confidence[i],
+                     local_points=mapped.local_points[i],
+                     mean_confidence=float(mapped.confidence[i].mean()))
+            for i in range(2)
+        )  # fmt: skip
+        keyframe_map = KeyframeMap(keyframes, cache, Sim3.identity(), generation=1,
+                                   resolution=frames.shape[1:3])  # fmt: skip
+        path = tmp_path / "golden.kvmap"
+        save_map(path, keyframe_map, backend_info=backend.info, tracker_config_json="{}",
+                 mode="scene")  # fmt: skip
+        here = backend.track(frames[2], cache, heads=HeadSet.ALL)
+    finally:
+        torch.set_num_threads(threads)
+    np.save(tmp_path / "frame.npy", frames[2])
+    out = subprocess.run(
+        [sys.executable, "-c", _TRACK_CHILD, str(path), str(weights), str(tmp_path / "frame.npy")],
+        cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=True,
+    )  # fmt: skip
+    child = json.loads(out.stdout)
+    assert child["storage"] == storage
+    assert child["pose"] == here.pose.tobytes().hex()
+    assert here.local_points is not None
+    assert child["points"] == hashlib.sha256(here.local_points.tobytes()).hexdigest()
