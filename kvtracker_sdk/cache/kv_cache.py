@@ -206,7 +206,7 @@ class KVCache:
         if tokens <= self.capacity:
             return
         new_capacity = max(tokens, int(self.capacity * 1.5) + self.tokens_per_frame)
-        self._store.grow(new_capacity, self.length)
+        self._store.grow(new_capacity, self._lengths())
 
     def buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The full-capacity K and V buffers of a layer; tokens past ``length`` are scratch.
@@ -265,12 +265,13 @@ class KVCache:
         index = torch.cat([torch.arange(p * T, (p + 1) * T) for p in keep]) if keep else None
         with self.lock:
             if index is not None:
-                self._store.keep(index)
+                for layer in range(self.layout.num_layers):
+                    self._store.keep(layer, index)
             self._keyframe_ids = [self._keyframe_ids[p] for p in keep]
 
     def clone(self) -> KVCache:
         """A deep copy of the cached part (no shared storage; quantised data stay quantised)."""
-        return self._copy(self._store.copy(self.length))
+        return self._copy(self._store.copy(self._lengths()))
 
     def to(
         self,
@@ -290,14 +291,14 @@ class KVCache:
             wanted = self.storage  # a dtype change keeps the quantised data
         if wanted in QUANTIZED_STORAGES:
             if wanted == self.storage:
-                return self._copy(self._store.copy(self.length, dtype=dtype, device=target))
+                return self._copy(self._store.copy(self._lengths(), dtype=dtype, device=target))
             compute = dtype or self.dtype
         else:
             compute = getattr(torch, wanted) if wanted is not None else (dtype or self.dtype)
             if dtype is not None and dtype != compute:
                 raise CacheError(f"a dense cache stores its compute dtype: {dtype} vs {wanted}")
             if not self.quantized:
-                return self._copy(self._store.copy(self.length, dtype=compute, device=target))
+                return self._copy(self._store.copy(self._lengths(), dtype=compute, device=target))
         store = make_store(
             self.layout,
             self.capacity,
@@ -308,6 +309,10 @@ class KVCache:
         for layer in range(self.layout.num_layers):  # one layer's full-precision copy at a time
             store.write(layer, 0, *self._store.read(layer, self.length))
         return self._copy(store)
+
+    def _lengths(self) -> list[int]:
+        """Cached tokens of each layer (the store's operations take per-layer lengths)."""
+        return [self.length] * self.layout.num_layers
 
     def _copy(self, store: LayerStore) -> KVCache:
         out = KVCache.__new__(KVCache)

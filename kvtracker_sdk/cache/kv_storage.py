@@ -16,6 +16,7 @@ answer the same token-level operations (write tokens, read them, grow, keep a su
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import torch
@@ -58,14 +59,18 @@ class LayerStore(Protocol):
 
     def peek_buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]: ...
 
-    def grow(self, capacity: int, length: int) -> None: ...
+    def grow(self, capacity: int, lengths: Sequence[int]) -> None: ...
 
-    def keep(self, index: torch.Tensor) -> None: ...
+    def keep(self, layer: int, index: torch.Tensor) -> None: ...
 
     def parts(self, layer: int, length: int) -> dict[str, torch.Tensor]: ...
 
     def copy(
-        self, length: int, *, dtype: torch.dtype | None = None, device: torch.device | None = None
+        self,
+        lengths: Sequence[int],
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | None = None,
     ) -> LayerStore: ...
 
 
@@ -116,29 +121,34 @@ class DenseLayers:
     def peek_buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
         return self.keys[layer], self.values[layer]
 
-    def grow(self, capacity: int, length: int) -> None:
+    def grow(self, capacity: int, lengths: Sequence[int]) -> None:
+        """Buffers of ``capacity`` tokens, keeping layer i's first ``lengths[i]``."""
         for store in (self.keys, self.values):
             for i, old in enumerate(store):
                 new = torch.empty(_shape(self.layout, capacity), dtype=self.dtype, device=self.device)
-                new[:, :, :length].copy_(old[:, :, :length])
+                new[:, :, : lengths[i]].copy_(old[:, :, : lengths[i]])
                 store[i] = new
 
-    def keep(self, index: torch.Tensor) -> None:
-        for store in (self.keys, self.values):
-            for buf in store:
-                kept = buf.index_select(2, index.to(buf.device))
-                buf[:, :, : kept.shape[2]].copy_(kept)
+    def keep(self, layer: int, index: torch.Tensor) -> None:
+        """Layer ``layer`` keeps the tokens at ``index`` (int64, increasing), moved to the front."""
+        for buf in (self.keys[layer], self.values[layer]):
+            kept = buf.index_select(2, index.to(buf.device))
+            buf[:, :, : kept.shape[2]].copy_(kept)
 
     def parts(self, layer: int, length: int) -> dict[str, torch.Tensor]:
         keys, values = self.read(layer, length)
         return {"key": keys, "value": values}
 
     def copy(
-        self, length: int, *, dtype: torch.dtype | None = None, device: torch.device | None = None
+        self,
+        lengths: Sequence[int],
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | None = None,
     ) -> DenseLayers:
         out = DenseLayers(self.layout, self.capacity, dtype or self.dtype, device or self.device)
         for layer in range(self.layout.num_layers):
-            out.write(layer, 0, *self.read(layer, length))
+            out.write(layer, 0, *self.read(layer, lengths[layer]))
         return out
 
 
@@ -226,21 +236,21 @@ class QuantizedLayers:
         self.data["key"][layer]  # an IndexError for a layer the cache does not have
         return self._work  # shape, dtype and device only: nothing is dequantised
 
-    def grow(self, capacity: int, length: int) -> None:
+    def grow(self, capacity: int, lengths: Sequence[int]) -> None:
         for store in (*self.data.values(), *self.scales.values()):
             for i, old in enumerate(store):
                 new = torch.empty(
                     (*old.shape[:2], capacity, old.shape[3]), dtype=old.dtype, device=self.device
                 )
-                new[:, :, :length].copy_(old[:, :, :length])
+                new[:, :, : lengths[i]].copy_(old[:, :, : lengths[i]])
                 store[i] = new
         self._work = self._new_work(capacity)
 
-    def keep(self, index: torch.Tensor) -> None:
+    def keep(self, layer: int, index: torch.Tensor) -> None:
         for store in (*self.data.values(), *self.scales.values()):
-            for buf in store:
-                kept = buf.index_select(2, index.to(buf.device))
-                buf[:, :, : kept.shape[2]].copy_(kept)
+            buf = store[layer]
+            kept = buf.index_select(2, index.to(buf.device))
+            buf[:, :, : kept.shape[2]].copy_(kept)
 
     def parts(self, layer: int, length: int) -> dict[str, torch.Tensor]:
         """Views of the stored data [1, heads, length, head_dim] and scales [1, heads, length, 1]."""
@@ -252,15 +262,20 @@ class QuantizedLayers:
         }
 
     def copy(
-        self, length: int, *, dtype: torch.dtype | None = None, device: torch.device | None = None
+        self,
+        lengths: Sequence[int],
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | None = None,
     ) -> QuantizedLayers:
         """The same quantised data (bit for bit) with another compute dtype and/or device."""
         out = QuantizedLayers(
             self.layout, self.capacity, self.scheme, dtype or self.dtype, device or self.device
         )
         for layer in range(self.layout.num_layers):
-            for name, tensor in self.parts(layer, length).items():
-                out.parts(layer, length)[name].copy_(tensor)
+            mine, theirs = self.parts(layer, lengths[layer]), out.parts(layer, lengths[layer])
+            for name, tensor in mine.items():
+                theirs[name].copy_(tensor)
         return out
 
 
