@@ -25,7 +25,7 @@ hook returning extra numbers for its row (e.g. insertion time); ``--variants`` p
 Run from the repository root::
 
     python -m benchmarks.compact_maps [--models pi3-mid da3-small] [--keyframes 8 32 64]
-        [--rounds 3] [--skip-accuracy] [--name compact_maps]
+        [--rounds 3] [--skip-accuracy] [--name compact_maps] [--out-dir benchmarks/results]
 
 Writes ``benchmarks/results/<name>.json`` and prints the tables with the load average.
 """
@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from benchmarks.model_families import MODELS as FAMILY_MODELS
 from benchmarks.tracking_vs_recompute import PRESETS
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache import CacheLayout, Keyframe, KeyframeMap, KVCache
@@ -90,12 +91,15 @@ class ModelSpec:
     name: str
     build: Callable[[], nn.Module]
     size: tuple[int, int]  # (H, W) of a 640x480 frame after the family's preprocessing
-    side: int  # the tracker's resolution d
 
 
 MODELS: dict[str, ModelSpec] = {
-    "pi3-mid": ModelSpec("pi3-mid", lambda: Pi3(PRESETS["mid"]()), (266, 350), 308),
-    "da3-small": ModelSpec("da3-small", lambda: DepthAnything3(DA3Config.small()), (168, 224), 224),
+    # d = 308 and d = 224: a 640x480 frame as the tracker prepares it
+    "pi3-mid": ModelSpec("pi3-mid", lambda: Pi3(PRESETS["mid"]()), (266, 350)),
+    "da3-small": ModelSpec("da3-small", lambda: DepthAnything3(DA3Config.small()), (168, 224)),
+    # the smoke test's
+    "pi3-tiny": ModelSpec("pi3-tiny", FAMILY_MODELS["pi3-tiny"][0], (56, 56)),
+    "da3-tiny": ModelSpec("da3-tiny", FAMILY_MODELS["da3-tiny"][0], (42, 70)),
 }
 
 
@@ -236,13 +240,14 @@ def print_tables(result: dict[str, Any]) -> None:
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--models", nargs="+", choices=sorted(MODELS), default=sorted(MODELS, reverse=True))
+    parser.add_argument("--models", nargs="+", choices=sorted(MODELS), default=["pi3-mid", "da3-small"])
     parser.add_argument("--keyframes", nargs="+", type=int, default=[8, 32, 64])
     parser.add_argument("--variants", nargs="+", choices=sorted(VARIANTS), default=list(VARIANTS))
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--skip-accuracy", action="store_true")
     parser.add_argument("--name", default="compact_maps")
+    parser.add_argument("--out-dir", type=Path, default=RESULTS)
     return parser.parse_args(argv)
 
 
@@ -270,8 +275,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if not args.skip_accuracy:
         result["accuracy"] = accuracy(variants)
     result["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    (args.out_dir / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     print_tables(result)
     return result
 
