@@ -20,7 +20,13 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
 )
 
-__all__ = ["check_cache", "check_frames", "check_masks"]
+__all__ = [
+    "QUANTIZED_CACHE_BACKENDS",
+    "check_cache",
+    "check_frames",
+    "check_masks",
+    "reads_quantized_caches",
+]
 
 
 def check_frames(images: object, patch_size: int) -> np.ndarray:
@@ -57,11 +63,27 @@ def check_masks(masks: np.ndarray | None, images: np.ndarray) -> None:
         )
 
 
+# Backends whose passes read a quantised cache layer by layer (``KVCache.buffers``). ONNX graphs
+# take every layer's K/V as inputs at once, which would need a full-precision copy of the whole
+# cache per step; the simulated backend reads exact frames from its float64 K/V.
+QUANTIZED_CACHE_BACKENDS = frozenset({"torch"})
+
+
+def reads_quantized_caches(info: BackendInfo) -> bool:
+    """Whether the backend described by ``info`` tracks against int8 / fp8 caches."""
+    return info.backend in QUANTIZED_CACHE_BACKENDS
+
+
 def check_cache(cache: KVCache, info: BackendInfo, height: int, width: int) -> None:
     """The cache fits the backend (layout, dtype, device) and frames of ``height`` x ``width``."""
     if cache.layout != info.layout:
         raise BackendMismatchError(
             f"cache layout {cache.layout} does not match this model's {info.layout}"
+        )
+    if cache.quantized and not reads_quantized_caches(info):
+        raise BackendMismatchError(
+            f"the {info.backend} backend cannot track against a quantised ({cache.storage}) cache: "
+            f"convert it with cache.to(storage={info.dtype!r}) or use the PyTorch backend"
         )
     dtype = str(cache.dtype).removeprefix("torch.")
     if dtype != info.dtype or str(cache.device) != info.device:

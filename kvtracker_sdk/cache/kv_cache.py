@@ -11,6 +11,11 @@ one buffer with spare capacity: a tracking pass writes its own K/V into the scra
 after ``length`` and attends over ``[:length + query_tokens]`` — a copy of the query's tokens only.
 Appending a keyframe writes into the spare capacity; the buffer grows geometrically when full.
 
+Storage (``kv_storage``): dense buffers in the compute dtype, or — ``storage="int8"`` or
+``"float8_e4m3fn"`` — quantised data with a scale per token and head, which ``buffers(layer)`` dequantises
+one layer at a time into a work pair in the compute dtype (scratch region included). ``dtype`` is
+always the compute dtype (what a model reads); ``storage`` names what is kept at rest.
+
 Concurrency: the scratch region is shared, so one tracking pass at a time per cache; callers hold
 ``cache.lock`` around a pass (backends do). Different caches (e.g. the previous map and a map being
 rebuilt on a worker thread) are fully independent.
@@ -23,6 +28,8 @@ from collections.abc import Sequence
 
 import torch
 
+from kvtracker_sdk.cache.kv_storage import LayerStore, make_store
+from kvtracker_sdk.cache.quantization import QUANTIZED_STORAGES, storage_name
 from kvtracker_sdk.errors import CacheError
 from kvtracker_sdk.models.layers.cache_layout import CacheLayout
 
@@ -40,19 +47,23 @@ class KVCache:
         dtype: torch.dtype = torch.float32,
         device: torch.device | str = "cpu",
         capacity_frames: int = 8,
+        storage: str | None = None,
     ) -> None:
+        """``storage``: None (dense in ``dtype``) or ``"int8"`` / ``"float8_e4m3fn"``."""
         if tokens_per_frame <= 0:
             raise CacheError(f"tokens_per_frame must be > 0, got {tokens_per_frame}")
         self.layout = layout
         self.tokens_per_frame = int(tokens_per_frame)
-        self.dtype = dtype
-        self.device = torch.device(device)
         self.lock = threading.RLock()
         self._keyframe_ids: list[int] = []
         capacity = max(1, capacity_frames) * self.tokens_per_frame
-        shape = (1, layout.num_heads, capacity, layout.head_dim)
-        self._keys = [torch.empty(shape, dtype=dtype, device=self.device) for _ in layout.block_indices]
-        self._values = [torch.empty(shape, dtype=dtype, device=self.device) for _ in layout.block_indices]
+        self._store: LayerStore = make_store(
+            layout,
+            capacity,
+            dtype=dtype,
+            device=torch.device(device),
+            storage=None if storage is None else storage_name(storage),
+        )
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -65,8 +76,10 @@ class KVCache:
         tokens_per_frame: int,
         keyframe_ids: Sequence[int],
         spare_frames: int = 2,
+        storage: str | None = None,
     ) -> KVCache:
-        """Wrap the per-layer K/V of a mapping pass ([1 or none, H, N*T, D] each)."""
+        """Wrap the per-layer K/V of a mapping pass ([1 or none, H, N*T, D] each); ``storage``
+        ``"int8"`` / ``"float8_e4m3fn"`` quantises them (one layer at a time)."""
         if len(keys) != layout.num_layers or len(values) != layout.num_layers:
             raise CacheError(
                 f"expected {layout.num_layers} layers of K and V, got {len(keys)} and {len(values)}"
@@ -79,6 +92,7 @@ class KVCache:
             dtype=first.dtype,
             device=first.device,
             capacity_frames=n + max(1, spare_frames),
+            storage=storage,
         )
         length = n * tokens_per_frame
         for i, (k, v) in enumerate(zip(keys, values, strict=True)):
@@ -89,8 +103,7 @@ class KVCache:
                 raise CacheError(
                     f"layer {i}: K {tuple(k4.shape)} / V {tuple(v4.shape)} do not match {expected}"
                 )
-            cache._keys[i][:, :, :length].copy_(k4)
-            cache._values[i][:, :, :length].copy_(v4)
+            cache._store.write(i, 0, k4, v4)
         cache._keyframe_ids = [int(i) for i in keyframe_ids]
         return cache
 
@@ -103,20 +116,44 @@ class KVCache:
         *,
         dtype: torch.dtype,
         spare_frames: int = 2,
+        storage: str | None = None,
     ) -> KVCache:
         """A CPU cache listing ``keyframe_ids`` whose K/V are not written yet: the caller fills
-        ``buffers(i)[:, :, :length]`` next (a map loader reads a file straight into place,
-        without an intermediate copy)."""
+        ``stored_parts(i)`` next (a map loader reads a file straight into place, without an
+        intermediate copy)."""
         ids = [int(i) for i in keyframe_ids]
         if len(set(ids)) != len(ids):
             raise CacheError(f"keyframe ids must be distinct, got {ids}")
         cache = cls(
-            layout, tokens_per_frame, dtype=dtype, capacity_frames=len(ids) + max(1, spare_frames)
+            layout,
+            tokens_per_frame,
+            dtype=dtype,
+            capacity_frames=len(ids) + max(1, spare_frames),
+            storage=storage,
         )
         cache._keyframe_ids = ids
         return cache
 
     # ------------------------------------------------------------------ properties
+    @property
+    def dtype(self) -> torch.dtype:
+        """The compute dtype: of ``keys``, ``values`` and ``buffers`` (a model's K/V dtype)."""
+        return self._store.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self._store.device
+
+    @property
+    def storage(self) -> str:
+        """What is kept at rest: the dtype name of a dense cache, ``"int8"`` or
+        ``"float8_e4m3fn"`` for a quantised one."""
+        return self._store.storage
+
+    @property
+    def quantized(self) -> bool:
+        return self.storage != str(self.dtype).removeprefix("torch.")
+
     @property
     def keyframe_ids(self) -> tuple[int, ...]:
         return tuple(self._keyframe_ids)
@@ -133,26 +170,35 @@ class KVCache:
     @property
     def capacity(self) -> int:
         """Tokens each layer buffer can hold (cached + scratch)."""
-        return int(self._keys[0].shape[2])
+        return self._store.capacity
 
     @property
     def nbytes(self) -> int:
-        """Bytes of the cached K/V (what a map file stores), excluding spare capacity."""
-        return self.length * self.layout.bytes_per_token(self.dtype)
+        """Bytes of the cached K/V at rest (what a map file stores; quantised: data + scales),
+        excluding spare capacity."""
+        return self.length * self._store.bytes_per_token()
 
     @property
     def allocated_nbytes(self) -> int:
-        return self.capacity * self.layout.bytes_per_token(self.dtype)
+        """Bytes held: every buffer at full capacity (quantised: plus the one-layer work pair)."""
+        return self._store.allocated_nbytes()
 
     def bytes_per_keyframe(self) -> int:
-        return self.tokens_per_frame * self.layout.bytes_per_token(self.dtype)
+        return self.tokens_per_frame * self._store.bytes_per_token()
 
     def keys(self, layer: int) -> torch.Tensor:
-        """View [1, H, length, D] of layer ``layer``'s cached keys (ordinal among global layers)."""
-        return self._keys[layer][:, :, : self.length]
+        """[1, H, length, D] cached keys of layer ``layer`` (ordinal among global layers) in the
+        compute dtype: a view for a dense cache, a dequantised copy for a quantised one."""
+        return self._store.read(layer, self.length)[0]
 
     def values(self, layer: int) -> torch.Tensor:
-        return self._values[layer][:, :, : self.length]
+        return self._store.read(layer, self.length)[1]
+
+    def stored_parts(self, layer: int) -> dict[str, torch.Tensor]:
+        """Views of what layer ``layer`` keeps at rest for the cached tokens: ``key``/``value``
+        [1, H, length, D] (quantised: their data, plus ``key_scale``/``value_scale``
+        [1, H, length, 1] float8 e5m2)."""
+        return self._store.parts(layer, self.length)
 
     # ------------------------------------------------------------------ model-facing
     def ensure_capacity(self, tokens: int) -> None:
@@ -160,17 +206,18 @@ class KVCache:
         if tokens <= self.capacity:
             return
         new_capacity = max(tokens, int(self.capacity * 1.5) + self.tokens_per_frame)
-        length = self.length
-        for store in (self._keys, self._values):
-            for i, old in enumerate(store):
-                shape = (1, self.layout.num_heads, new_capacity, self.layout.head_dim)
-                new = torch.empty(shape, dtype=self.dtype, device=self.device)
-                new[:, :, :length].copy_(old[:, :, :length])
-                store[i] = new
+        self._store.grow(new_capacity, self._lengths())
 
     def buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """The full-capacity K and V buffers of a layer; tokens past ``length`` are scratch."""
-        return self._keys[layer], self._values[layer]
+        """The full-capacity K and V buffers of a layer; tokens past ``length`` are scratch.
+
+        Quantised: one work pair shared by all layers, refilled with this layer's dequantised
+        tokens by every call (valid until the next call)."""
+        return self._store.buffers(layer, self.length)
+
+    def peek_buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The tensors ``buffers(layer)`` returns, without filling them (shape/dtype checks)."""
+        return self._store.peek_buffers(layer)
 
     # ------------------------------------------------------------------ editing
     def append_keyframe(
@@ -194,8 +241,7 @@ class KVCache:
         with self.lock:
             self.ensure_capacity(stop + self.tokens_per_frame)
             for i, (k, v) in enumerate(zip(keys, values, strict=True)):
-                self._keys[i][:, :, start:stop].copy_(k.reshape(expected))
-                self._values[i][:, :, start:stop].copy_(v.reshape(expected))
+                self._store.write(i, start, k.reshape(expected), v.reshape(expected))
             self._keyframe_ids.append(int(keyframe_id))
 
     def relabel_keyframes(self, keyframe_ids: Sequence[int]) -> None:
@@ -218,62 +264,85 @@ class KVCache:
         T = self.tokens_per_frame
         index = torch.cat([torch.arange(p * T, (p + 1) * T) for p in keep]) if keep else None
         with self.lock:
-            for store in (self._keys, self._values):
-                for buf in store:
-                    if index is not None:
-                        kept = buf.index_select(2, index.to(buf.device))
-                        buf[:, :, : kept.shape[2]].copy_(kept)
+            if index is not None:
+                for layer in range(self.layout.num_layers):
+                    self._store.keep(layer, index)
             self._keyframe_ids = [self._keyframe_ids[p] for p in keep]
 
     def clone(self) -> KVCache:
-        """A deep copy of the cached part (no shared storage)."""
-        out = KVCache(
-            self.layout,
-            self.tokens_per_frame,
-            dtype=self.dtype,
-            device=self.device,
-            capacity_frames=self.capacity // self.tokens_per_frame,
-        )
-        for i in range(self.layout.num_layers):
-            out._keys[i][:, :, : self.length].copy_(self.keys(i))
-            out._values[i][:, :, : self.length].copy_(self.values(i))
-        out._keyframe_ids = list(self._keyframe_ids)
-        return out
+        """A deep copy of the cached part (no shared storage; quantised data stay quantised)."""
+        return self._copy(self._store.copy(self._lengths()))
 
-    def to(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> KVCache:
-        """A copy in another dtype and/or on another device."""
-        dtype = dtype or self.dtype
-        out = KVCache(
+    def to(
+        self,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+        *,
+        storage: str | None = None,
+    ) -> KVCache:
+        """A copy in another compute dtype, on another device and/or in another storage.
+
+        A quantised cache keeps its data bit for bit when only ``dtype``/``device`` change;
+        ``storage`` ``"int8"`` / ``"float8_e4m3fn"`` quantises, a dtype name (e.g.
+        ``"float32"``) makes a dense cache of that dtype."""
+        target = torch.device(device) if device is not None else None
+        wanted = storage_name(storage) if storage is not None else None
+        if wanted is None and self.quantized:
+            wanted = self.storage  # a dtype change keeps the quantised data
+        if wanted in QUANTIZED_STORAGES:
+            if wanted == self.storage:
+                return self._copy(self._store.copy(self._lengths(), dtype=dtype, device=target))
+            compute = dtype or self.dtype
+        else:
+            compute = getattr(torch, wanted) if wanted is not None else (dtype or self.dtype)
+            if dtype is not None and dtype != compute:
+                raise CacheError(f"a dense cache stores its compute dtype: {dtype} vs {wanted}")
+            if not self.quantized:
+                return self._copy(self._store.copy(self._lengths(), dtype=compute, device=target))
+        store = make_store(
             self.layout,
-            self.tokens_per_frame,
-            dtype=dtype,
-            device=device or self.device,
-            capacity_frames=self.capacity // self.tokens_per_frame,
+            self.capacity,
+            dtype=compute,
+            device=target or self.device,
+            storage=wanted if wanted in QUANTIZED_STORAGES else None,
         )
-        for i in range(self.layout.num_layers):
-            out._keys[i][:, :, : self.length].copy_(self.keys(i))
-            out._values[i][:, :, : self.length].copy_(self.values(i))
+        for layer in range(self.layout.num_layers):  # one layer's full-precision copy at a time
+            store.write(layer, 0, *self._store.read(layer, self.length))
+        return self._copy(store)
+
+    def _lengths(self) -> list[int]:
+        """Cached tokens of each layer (the store's operations take per-layer lengths)."""
+        return [self.length] * self.layout.num_layers
+
+    def _copy(self, store: LayerStore) -> KVCache:
+        out = KVCache.__new__(KVCache)
+        out.layout, out.tokens_per_frame = self.layout, self.tokens_per_frame
+        out.lock = threading.RLock()
         out._keyframe_ids = list(self._keyframe_ids)
+        out._store = store
         return out
 
     def equals(self, other: KVCache) -> bool:
-        """Bit-identical cached content, layout, dtype and keyframe ids."""
+        """Bit-identical content at rest, layout, dtype, storage and keyframe ids."""
         if (
             self.layout != other.layout
             or self.tokens_per_frame != other.tokens_per_frame
             or self.dtype != other.dtype
+            or self.storage != other.storage
             or self.keyframe_ids != other.keyframe_ids
         ):
             return False
-        return all(
-            torch.equal(self.keys(i), other.keys(i)) and torch.equal(self.values(i), other.values(i))
-            for i in range(self.layout.num_layers)
-        )
+        for layer in range(self.layout.num_layers):
+            mine, theirs = self.stored_parts(layer), other.stored_parts(layer)
+            if not all(torch.equal(mine[name].view(torch.uint8), theirs[name].view(torch.uint8))
+                       for name in mine):  # fmt: skip
+                return False
+        return True
 
     def __repr__(self) -> str:
         return (
             f"KVCache(keyframes={self.num_keyframes}, layers={self.layout.num_layers}, "
             f"heads={self.layout.num_heads}, head_dim={self.layout.head_dim}, "
-            f"tokens_per_frame={self.tokens_per_frame}, dtype={self.dtype}, "
+            f"tokens_per_frame={self.tokens_per_frame}, dtype={self.dtype}, storage={self.storage}, "
             f"bytes={self.nbytes})"
         )

@@ -51,7 +51,13 @@ from kvtracker_sdk.io.map_format import (
     parse_header,
 )
 from kvtracker_sdk.io.map_reader import MapFile, open_map_file, read_map_tensors
-from kvtracker_sdk.io.map_schema import CACHE_DTYPES, FORMAT_NAME, FORMAT_VERSION, MAX_GENERATION
+from kvtracker_sdk.io.map_schema import (
+    CACHE_DTYPES,
+    DENSE_FORMAT_VERSION,
+    FORMAT_NAME,
+    MAX_GENERATION,
+    QUANTIZED_CACHE_DTYPES,
+)
 from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
 from kvtracker_sdk.io.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
@@ -79,8 +85,8 @@ class LoadedMap:
 
 
 # ---------------------------------------------------------------------------------- saving
-def _dtype_name(dtype: torch.dtype) -> str:
-    name = str(dtype).removeprefix("torch.")
+def _dtype_name(storage: str) -> str:
+    name = storage
     if name not in CACHE_DTYPES:
         raise MapFormatError(
             f"cannot save map: cache dtype {name} (supported: {sorted(CACHE_DTYPES)})"
@@ -129,13 +135,15 @@ def _saved_info(
         )
     if problem := gauge_problem(keyframe_map.gauge):
         raise MapFormatError(f"cannot save map: {problem}")
+    dtype = _dtype_name(cache.storage)
     return MapInfo(
-        format_version=FORMAT_VERSION,
+        # the oldest version that holds this cache: a dense map stays readable by older SDKs
+        format_version=QUANTIZED_CACHE_DTYPES.get(dtype, DENSE_FORMAT_VERSION),
         sdk_version=sdk_version,
         created_utc=datetime.now(timezone.utc),
         backend=backend_info,
         resolution=(int(height), int(width)),
-        dtype=_dtype_name(cache.dtype),
+        dtype=dtype,
         tokens_per_frame=cache.tokens_per_frame,
         mode=str(mode),
         tracker_config_json=tracker_config_json,

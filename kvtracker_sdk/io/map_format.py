@@ -28,6 +28,7 @@ import numpy as np
 
 from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.kv_cache import CacheLayout
+from kvtracker_sdk.cache.quantization import QUANTIZED_STORAGES
 from kvtracker_sdk.config import TrackingMode
 from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, MapVersionError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
@@ -41,14 +42,22 @@ from kvtracker_sdk.io.map_schema import (
     MAX_GENERATION,
     OLDEST_READABLE_VERSION,
     PREPROCESSING_FIELD,
+    QUANTIZATION_FIELD,
+    QUANTIZED_CACHE_DTYPES,
     RIGID_ATOL,
     TensorSpec,
     check_tensor_table,
-    layer_key,
     tensor_schema,
 )
 
-__all__ = ["MapInfo", "encode_metadata", "gauge_problem", "metadata_digest", "parse_header"]
+__all__ = [
+    "MapInfo",
+    "encode_metadata",
+    "gauge_problem",
+    "metadata_digest",
+    "parse_header",
+    "quantization_description",
+]
 
 _DIGEST_KEY = "metadata_sha256"
 _JSON_NAMES: dict[type, str] = {dict: "object", list: "array"}
@@ -73,7 +82,7 @@ class MapInfo:
     created_utc: datetime  # timezone-aware, UTC
     backend: BackendInfo
     resolution: tuple[int, int]  # (H, W) model input, pixels
-    dtype: str  # cache dtype name, a key of CACHE_DTYPES
+    dtype: str  # cache storage name, a key of CACHE_DTYPES (int8 / float8_e4m3fn: quantised)
     tokens_per_frame: int
     mode: str  # tracking mode of the session that saved the map ("scene", "object")
     tracker_config_json: str  # the tracker configuration, JSON text exactly as saved
@@ -104,15 +113,31 @@ class MapInfo:
         return len(self.keyframe_ids)
 
     @property
+    def quantized(self) -> bool:
+        return self.dtype in QUANTIZED_CACHE_DTYPES
+
+    @property
     def cache_nbytes(self) -> int:
-        """Bytes of the stored K/V (all layers)."""
-        return 2 * self.layout.num_layers * self.tensor_schema()[layer_key(0)].nbytes
+        """Bytes of the stored K/V (all layers; quantised: data and scales)."""
+        return sum(
+            spec.nbytes for name, spec in self.tensor_schema().items() if name.startswith("layers.")
+        )
 
     def tensor_schema(self) -> dict[str, TensorSpec]:
         """Name -> (safetensors dtype, shape) of every tensor this header declares."""
         return tensor_schema(
             self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution
         )
+
+
+def quantization_description(dtype: str) -> dict[str, str]:
+    """The ``cache_quantization`` header value of a quantised cache dtype: what the scales are."""
+    scheme = QUANTIZED_STORAGES[dtype]
+    return {
+        "scale_dtype": str(scheme.scale_dtype).removeprefix("torch."),
+        "key_scale": scheme.key_axis,
+        "value_scale": scheme.value_axis,
+    }
 
 
 def _dumps(value: Any) -> str:
@@ -163,6 +188,8 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "tensor_sha256": _dumps(dict(info.tensor_sha256)),
         PREPROCESSING_FIELD: info.preprocessing,
     }
+    if info.quantized:  # version 2: what the scale tensors mean
+        metadata[QUANTIZATION_FIELD] = _dumps(quantization_description(info.dtype))
     if info.camera is not None:  # optional: maps saved without known intrinsics omit it
         source = info.camera_source.value if info.camera_source is not None else None
         metadata["camera"] = _dumps({**info.camera.to_dict(), "source": source})
@@ -374,6 +401,28 @@ def _decode_preprocessing(fields: _Fields) -> str:
     return name
 
 
+def _decode_cache_dtype(fields: _Fields, version: int) -> str:
+    """The cache dtype; a quantised one needs version 2 and the scales' description."""
+    dtype = fields.text("dtype")
+    if dtype not in CACHE_DTYPES:
+        raise fields.fail(f"unsupported cache dtype {dtype!r} (known: {sorted(CACHE_DTYPES)})")
+    if dtype not in QUANTIZED_CACHE_DTYPES:
+        if QUANTIZATION_FIELD in fields.metadata:
+            raise fields.fail(f"a {dtype} cache has no '{QUANTIZATION_FIELD}'")
+        return dtype
+    if version < QUANTIZED_CACHE_DTYPES[dtype]:
+        raise fields.fail(f"cache dtype {dtype} needs format version >= {QUANTIZED_CACHE_DTYPES[dtype]}")
+    if QUANTIZATION_FIELD not in fields.metadata:
+        raise fields.fail(f"a quantised ({dtype}) cache needs the header field '{QUANTIZATION_FIELD}'")
+    described = fields.json(QUANTIZATION_FIELD, dict)
+    if described != quantization_description(dtype):
+        raise fields.fail(
+            f"'{QUANTIZATION_FIELD}' {described!r} is not what this SDK reads for {dtype}: "
+            f"{quantization_description(dtype)}"
+        )
+    return dtype
+
+
 def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str) -> MapInfo:
     """Validate ``__metadata__`` and build the MapInfo: format and version first (a newer
     version may seal its header differently), then the header checksum, then every field."""
@@ -385,9 +434,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
     if missing:
         raise fields.fail(f"header lacks required fields {missing}")
     backend, tokens_per_frame = _decode_backend(fields)
-    dtype = fields.text("dtype")
-    if dtype not in CACHE_DTYPES:
-        raise fields.fail(f"unsupported cache dtype {dtype!r} (known: {sorted(CACHE_DTYPES)})")
+    dtype = _decode_cache_dtype(fields, version)
     keyframe_ids = _decode_ids(fields, "keyframe_ids")
     cache_keyframe_ids = _decode_ids(fields, "cache_keyframe_ids")
     if set(cache_keyframe_ids) != set(keyframe_ids):

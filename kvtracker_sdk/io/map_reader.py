@@ -32,7 +32,8 @@ import torch
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapIOError
 from kvtracker_sdk.io.map_format import MapInfo
-from kvtracker_sdk.io.map_schema import CACHE_DTYPES, MAX_HEADER_BYTES, layer_key, layer_value
+from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES
+from kvtracker_sdk.io.map_tensors import layer_tensor_names, stored_compute_dtype
 
 __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
 
@@ -42,7 +43,8 @@ _WORKERS = max(1, min(4, os.cpu_count() or 1))
 _OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
 _TORCH_DTYPES = {
     "U8": torch.uint8, "I64": torch.int64, "F64": torch.float64, "F32": torch.float32,
-    "F16": torch.float16, "BF16": torch.bfloat16,
+    "F16": torch.float16, "BF16": torch.bfloat16, "I8": torch.int8,
+    "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
 }  # fmt: skip
 
 
@@ -141,28 +143,27 @@ def read_map_tensors(
     verify: bool,
 ) -> tuple[dict[str, torch.Tensor], KVCache, dict[str, str]]:
     """Read every tensor of a validated header: (keyframe tensors by name, the K/V as a CPU
-    cache in the file's dtype, sha256 by tensor name — empty unless ``verify``).
+    cache in the file's storage — a quantised map's data and scales stay quantised —, sha256 by
+    tensor name — empty unless ``verify``).
 
     ``offsets`` gives each tensor's first byte in the file (header and prefix included).
     """
-    n, tokens = info.num_keyframes, info.tokens_per_frame
     cache = KVCache.preallocated(
         info.layout,
-        tokens,
+        info.tokens_per_frame,
         info.cache_keyframe_ids,
-        dtype=getattr(torch, info.dtype),
+        dtype=stored_compute_dtype(info),
+        storage=info.dtype,
     )
-    per_head = n * tokens * info.layout.head_dim * CACHE_DTYPES[info.dtype][1]
     jobs: dict[str, list[tuple[memoryview, int]]] = {}
     for layer in range(info.layout.num_layers):
-        for name, buffer in zip(
-            (layer_key(layer), layer_value(layer)), cache.buffers(layer), strict=True
-        ):
-            # the file holds [heads, N*T, head_dim]; each head goes to its own contiguous
-            # slice [N*T, head_dim] of the [1, heads, capacity, head_dim] buffer
-            jobs[name] = [
-                (_bytes_of(buffer[0, head, : n * tokens]), offsets[name] + head * per_head)
-                for head in range(info.layout.num_heads)
+        names = layer_tensor_names(layer)
+        for part, view in cache.stored_parts(layer).items():
+            # the file holds [heads, N*T, X]; each head goes to its own contiguous slice
+            # [N*T, X] of the [1, heads, capacity, X] buffer (X: head_dim, or 1 for scales)
+            heads = [_bytes_of(view[0, head]) for head in range(info.layout.num_heads)]
+            jobs[names[part]] = [
+                (chunk, offsets[names[part]] + head * len(chunk)) for head, chunk in enumerate(heads)
             ]
     keyframe_tensors: dict[str, torch.Tensor] = {}
     for name, spec in info.tensor_schema().items():

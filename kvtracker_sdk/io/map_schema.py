@@ -9,6 +9,8 @@ Tensors (N keyframes, T tokens per frame, H x W model resolution, L cached layer
 
     name                               dtype     shape                   content
     layers.{i}.key, layers.{i}.value   cache     [heads, N*T, head_dim]  K/V of cached layer i, keyframe-major
+    layers.{i}.key_scale, .value_scale F8_E5M2   [heads, N*T, 1]         quantised caches only (version 2):
+                                                                         K = key * key_scale per token and head
     keyframes.image                    uint8     [N, H, W, 3]            RGB at model resolution
     keyframes.mask                     uint8     [N, H, W]               0/1 object mask (0 where absent)
     keyframes.has_mask                 uint8     [N]                     1 if the keyframe has a mask
@@ -20,6 +22,13 @@ Tensors (N keyframes, T tokens per frame, H x W model resolution, L cached layer
     keyframes.local_points             float32   [N, H, W, 3]            camera-frame points, world scale
 
 The gauge (raw frame of the cache -> world) and every other scalar live in the JSON header.
+
+Versions: 1 holds dense caches (float32, bfloat16, float16, float64). 2 adds quantised caches
+(dtype ``int8`` or ``float8_e4m3fn``, with the scale tensors above and the header field
+``cache_quantization``); a version-1 reader would misread them, so they are written as version 2.
+A dense map is still written as version 1, which every SDK since the format's start reads: the
+writer picks the oldest version that holds the map. Every version back to
+``OLDEST_READABLE_VERSION`` loads.
 
 Local points stay float32 (as in memory): a reloaded map then reproduces object centres and
 gauge scales bit for bit, and they cost ~3% of a map (the K/V dominate); float16 would save that
@@ -37,6 +46,10 @@ from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
 
 __all__ = [
     "CACHE_DTYPES",
+    "DENSE_FORMAT_VERSION",
+    "QUANTIZATION_FIELD",
+    "QUANTIZED_CACHE_DTYPES",
+    "SCALE_CODE",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "LEGACY_PREPROCESSING",
@@ -48,13 +61,18 @@ __all__ = [
     "TensorSpec",
     "check_tensor_table",
     "layer_key",
+    "layer_key_scale",
     "layer_value",
+    "layer_value_scale",
     "tensor_schema",
 ]
 
 FORMAT_NAME = "kvtracker-map"
-FORMAT_VERSION = 1  # bump on any change a version-1 reader would misread
+FORMAT_VERSION = 2  # bump on any change an older reader would misread (2: quantised caches)
 OLDEST_READABLE_VERSION = 1
+DENSE_FORMAT_VERSION = 1  # what a dense cache's map is written as (readable by older SDKs)
+# Header field of version-2 quantised maps: what the scale tensors mean (checked on loading).
+QUANTIZATION_FIELD = "cache_quantization"
 # Optional header field (no version bump: a version-1 reader ignores it): the name of the
 # preprocessing that prepared the keyframe images; absent = LEGACY_PREPROCESSING.
 PREPROCESSING_FIELD = "preprocessing"
@@ -77,8 +95,16 @@ CACHE_DTYPES: dict[str, tuple[str, int]] = {
     "float16": ("F16", 2),
     "bfloat16": ("BF16", 2),
     "float64": ("F64", 8),  # SimulatedBackend's cache (it carries exact Sim(3) frames in its K/V)
+    "int8": ("I8", 1),  # quantised (version 2): with scale tensors
+    "float8_e4m3fn": ("F8_E4M3", 1),
 }
-_ITEMSIZE = {"F32": 4, "F16": 2, "BF16": 2, "F64": 8, "I64": 8, "U8": 1}
+# quantised cache dtype -> the smallest format version that holds it
+QUANTIZED_CACHE_DTYPES: dict[str, int] = {"int8": 2, "float8_e4m3fn": 2}
+SCALE_CODE = "F8_E5M2"  # safetensors code of the scale tensors (cache/quantization.py)
+_ITEMSIZE = {
+    "F32": 4, "F16": 2, "BF16": 2, "F64": 8, "I64": 8, "U8": 1, "I8": 1, "F8_E4M3": 1,
+    "F8_E5M2": 1,
+}  # fmt: skip
 
 IMAGE = "keyframes.image"
 MASK = "keyframes.mask"
@@ -111,6 +137,14 @@ def layer_value(layer: int) -> str:
     return f"layers.{layer}.value"
 
 
+def layer_key_scale(layer: int) -> str:
+    return f"layers.{layer}.key_scale"
+
+
+def layer_value_scale(layer: int) -> str:
+    return f"layers.{layer}.value_scale"
+
+
 def tensor_schema(
     layout: CacheLayout,
     cache_dtype: str,
@@ -123,10 +157,14 @@ def tensor_schema(
     kv = TensorSpec(
         CACHE_DTYPES[cache_dtype][0], (layout.num_heads, n * tokens_per_frame, layout.head_dim)
     )
+    scale = TensorSpec(SCALE_CODE, (layout.num_heads, n * tokens_per_frame, 1))
     schema = {}
     for layer in range(layout.num_layers):
         schema[layer_key(layer)] = kv
         schema[layer_value(layer)] = kv
+        if cache_dtype in QUANTIZED_CACHE_DTYPES:
+            schema[layer_key_scale(layer)] = scale
+            schema[layer_value_scale(layer)] = scale
     schema.update(
         {
             IMAGE: TensorSpec("U8", (n, h, w, 3)),

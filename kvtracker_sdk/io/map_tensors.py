@@ -36,12 +36,15 @@ from kvtracker_sdk.io.map_schema import (
     T_WORLD_CAM,
     TIMESTAMP,
     layer_key,
+    layer_key_scale,
     layer_value,
+    layer_value_scale,
 )
 
 __all__ = [
     "check_digests",
     "keyframe_problem",
+    "layer_tensor_names",
     "map_from_parts",
     "map_from_tensors",
     "map_to_tensors",
@@ -114,13 +117,25 @@ def _stack(
     return torch.from_numpy(np.stack(arrays).astype(dtype, copy=False))
 
 
+def layer_tensor_names(layer: int) -> dict[str, str]:
+    """``KVCache.stored_parts`` name -> map file tensor name, for cached layer ``layer``."""
+    return {
+        "key": layer_key(layer),
+        "value": layer_value(layer),
+        "key_scale": layer_key_scale(layer),
+        "value_scale": layer_value_scale(layer),
+    }
+
+
 def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
-    """Contiguous CPU copies [heads, N*T, head_dim] of every layer's cached K and V."""
+    """Contiguous CPU copies [heads, N*T, head_dim or 1] of what every layer stores at rest (a
+    quantised cache: its data and scales, never a dequantised copy)."""
     layers = {}
     with cache.lock:  # a consistent snapshot even if another thread edits the cache afterwards
         for i in range(cache.layout.num_layers):
-            for name, view in ((layer_key(i), cache.keys(i)), (layer_value(i), cache.values(i))):
-                layers[name] = torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
+            names = layer_tensor_names(i)
+            for part, view in cache.stored_parts(i).items():
+                layers[names[part]] = torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
     return layers
 
 
@@ -196,6 +211,17 @@ def _keyframes(
     )
 
 
+def stored_compute_dtype(info: MapInfo) -> torch.dtype:
+    """The compute dtype of a loaded map's cache before any backend asks for its own: a dense
+    cache's stored dtype; for a quantised one the saving backend's dtype (float32 if that is not
+    a float dtype torch knows)."""
+    if not info.quantized:
+        return getattr(torch, info.dtype)
+    name = info.backend.dtype
+    dtype = getattr(torch, name, None) if name in ("float32", "bfloat16", "float16") else None
+    return dtype if isinstance(dtype, torch.dtype) else torch.float32
+
+
 def map_from_tensors(
     tensors: Mapping[str, torch.Tensor],
     info: MapInfo,
@@ -209,16 +235,19 @@ def map_from_tensors(
     The K/V are copied once into the cache's preallocated buffers; with ``dtype``/``device``
     the cache is then converted (one more copy, only when they differ from the file's).
     """
-    layers = range(info.layout.num_layers)
     try:
-        cache = KVCache.from_layers(
-            [tensors[layer_key(i)] for i in layers],
-            [tensors[layer_value(i)] for i in layers],
-            layout=info.layout,
-            tokens_per_frame=info.tokens_per_frame,
-            keyframe_ids=info.cache_keyframe_ids,
+        cache = KVCache.preallocated(
+            info.layout,
+            info.tokens_per_frame,
+            info.cache_keyframe_ids,
+            dtype=stored_compute_dtype(info),
+            storage=info.dtype,
         )
-    except CacheError as exc:  # the schema check makes this unreachable for valid headers
+        for layer in range(info.layout.num_layers):
+            names = layer_tensor_names(layer)
+            for part, view in cache.stored_parts(layer).items():
+                view[0].copy_(tensors[names[part]])
+    except (CacheError, RuntimeError) as exc:  # the schema check makes this unreachable
         raise MapCorruptedError(f"{source}: the K/V tensors do not form a cache: {exc}") from exc
     return map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
 

@@ -116,8 +116,10 @@ def build_map(
     *,
     rejection: RejectionConfig,
     align_gauge: bool = True,
+    cache_storage: str | None = None,
 ) -> RebuildOutcome:
-    """Run the mapping pass for ``request`` and build the new map (see module docstring)."""
+    """Run the mapping pass for ``request`` and build the new map (see module docstring);
+    ``cache_storage`` ``"int8"`` / ``"fp8"`` quantises the pass's cache (None: as it came)."""
     start = time.perf_counter()
     previous, candidate_frame = request.previous, request.candidate
     if previous is not None and previous.preprocessing != candidate_frame.preprocessing:
@@ -151,7 +153,7 @@ def build_map(
         )
         for i, source in enumerate(sources)
     )
-    cache = result.cache
+    cache = result.cache if cache_storage is None else result.cache.to(storage=cache_storage)
     cache.relabel_keyframes([kf.keyframe_id for kf in keyframes])
     new_map = KeyframeMap(
         keyframes, cache, gauge, generation=request.generation, resolution=size,

@@ -137,12 +137,15 @@ class MapKeeper:
         self._floor = floor
         self._clear_counters()
 
-    def convert_cache(self, dtype: str, device: str) -> None:
+    def convert_cache(self, dtype: str, device: str, *, dequantize: bool = False) -> None:
         """Re-express the map's K/V in another backend's dtype and device (a backend swap between
-        runtimes or precisions of the same model: same function, different storage)."""
+        runtimes or precisions of the same model: same function, different storage). A quantised
+        cache stays quantised unless ``dequantize`` (a backend that cannot read one)."""
         kf_map = self.map
         target_dtype, target_device = getattr(torch, dtype), torch.device(device)
-        if kf_map is not None and (kf_map.cache.dtype, kf_map.cache.device) != (
+        if kf_map is not None and dequantize and kf_map.cache.quantized:
+            self.map = replace(kf_map, cache=kf_map.cache.to(device=target_device, storage=dtype))
+        elif kf_map is not None and (kf_map.cache.dtype, kf_map.cache.device) != (
             target_dtype,
             target_device,
         ):
@@ -287,6 +290,7 @@ class MapKeeper:
         )
         self._request = request
         self._started += 1
+        storage = self._config.cache_dtype
         self._mapper.submit(
             partial(
                 build_map,
@@ -294,6 +298,7 @@ class MapKeeper:
                 request,
                 rejection=self._config.rejection,
                 align_gauge=self._config.debug.gauge_alignment,
+                cache_storage=None if storage == "backend" else storage,
             )
         )
         return candidate.keyframe_id

@@ -24,10 +24,11 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from kvtracker_sdk.backends.base import BackendInfo
+from kvtracker_sdk.backends.frame_checks import reads_quantized_caches
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import (
@@ -189,7 +190,17 @@ def load_tracker_map(
             f"does not know (known: {sorted(PREPROCESSINGS)}); upgrade kvtracker-sdk"
         )
     resolved = resolve_config(loaded.info, config, source)
-    return LoadedTrackerMap(loaded.keyframe_map, resolved, loaded.info)
+    keyframe_map = loaded.keyframe_map
+    if keyframe_map.cache.quantized and not reads_quantized_caches(backend_info):
+        # e.g. ONNX Runtime, whose graph takes the whole cache as inputs: dequantised once here
+        _log.warning("quantised map dequantised for a backend that cannot read it",
+                     path=source, storage=keyframe_map.cache.storage, backend=backend_info.backend)  # fmt: skip
+        keyframe_map = replace(
+            keyframe_map, cache=keyframe_map.cache.to(storage=backend_info.dtype)
+        )
+        if resolved.cache_dtype != "backend":  # the session goes on with dense maps
+            resolved = resolved.updated(cache_dtype="backend")
+    return LoadedTrackerMap(keyframe_map, resolved, loaded.info)
 
 
 def check_map_camera(info: MapInfo, given: Camera | None, source: str) -> bool:

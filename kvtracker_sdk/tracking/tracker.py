@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.backends.base import Backend
+from kvtracker_sdk.backends.base import Backend, BackendInfo
+from kvtracker_sdk.backends.frame_checks import reads_quantized_caches
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import (
     BackendMismatchError,
+    ConfigError,
     InputError,
     MissingDependencyError,
     StateError,
@@ -88,6 +90,7 @@ class Tracker(EventSource):
             cfg, patch_size=backend.info.patch_size, family=backend.info.family
         )
         cfg = self._preparer.config  # an unset resolution becomes the family's default
+        _check_cache_dtype(cfg, backend.info)
         self._config = cfg
         self._owns_backend = False
         self._events = EventBus()
@@ -246,12 +249,15 @@ class Tracker(EventSource):
                 f"{old.layout}) for {new.backend}/{new.model} (fingerprint {new.fingerprint}, "
                 f"layout {new.layout})"
             )
+        _check_cache_dtype(self._config, new)
         while True:
             self._settle(timeout=None)  # rebuilds made by the old backend
             with self._call():
                 if self._keeper.rebuilding:
                     continue  # a frame started another one meanwhile
-                self._keeper.convert_cache(new.dtype, new.device)
+                self._keeper.convert_cache(
+                    new.dtype, new.device, dequantize=not reads_quantized_caches(new)
+                )
                 previous, self._loop.backend = self._loop.backend, backend
                 self._owns_backend = False
                 return previous
@@ -440,6 +446,15 @@ class Tracker(EventSource):
                 yield
         finally:
             self._events.deliver()
+
+
+def _check_cache_dtype(config: TrackerConfig, backend: BackendInfo) -> None:
+    """ConfigError if the config asks for quantised maps a backend cannot track against."""
+    if config.cache_dtype != "backend" and not reads_quantized_caches(backend):
+        raise ConfigError(
+            f"cache_dtype {config.cache_dtype!r} needs the PyTorch backend; the {backend.backend} "
+            f"backend reads dense caches only (cache_dtype 'backend')"
+        )
 
 
 def _checked_camera(camera: Any) -> Camera | None:

@@ -1,5 +1,6 @@
 """``kvtracker track`` on the real TUM frames with the small golden Pi3 (random weights): every
-output, a readable PLY and rerun recording, and a map saved, inspected and relocalised against."""
+output, a readable PLY and rerun recording, and a map saved (int8), inspected and relocalised
+against."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def tracked(tmp_path_factory: pytest.TempPathFactory, tum: Path, golden_weights:
     out = tmp_path_factory.mktemp("track")
     result = invoke("track", tum, "--weights", golden_weights, "--out", out, *FAST,
                     "--max-frames", "8", "--keyframe-interval", "3", "--rerun", out / "run.rrd",
-                    "--save-map", out / "desk.kvmap")
+                    "--save-map", out / "desk.kvmap", "--cache-dtype", "int8")
     assert result.exit_code == 0, result.output
     return out
 
@@ -89,6 +90,7 @@ def test_map_info_and_relocalising_against_the_saved_map(tracked: Path, tum: Pat
     assert facts["fingerprint"] == run["backend"]["fingerprint"]
     assert facts["keyframes"] == run["map"]["keyframes"] and facts["resolution_hw"] == [196, 252]
     assert facts["preprocessing"] == "pi3-kvtracker-v1"
+    assert facts["cache_dtype"] == "int8" and facts["format_version"] == 2  # --cache-dtype int8
     text = invoke("map", "info", tracked / "desk.kvmap")
     assert "fingerprint " + facts["fingerprint"] in text.stdout
 

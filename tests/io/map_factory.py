@@ -67,8 +67,10 @@ def make_map(
     dtype: torch.dtype = torch.float32,
     seed: int = 0,
     generation: int = 2,
+    storage: str | None = None,
 ) -> KeyframeMap:
-    """A map with random content; keyframe 1 has no mask and no timestamp (both optional)."""
+    """A map with random content; keyframe 1 has no mask and no timestamp (both optional);
+    ``storage`` ``"int8"`` / ``"float8_e4m3fn"`` quantises its cache."""
     rng = np.random.default_rng(seed)
     h, w = size
     tokens = EXTRA_TOKENS + (h // PATCH) * (w // PATCH)
@@ -79,7 +81,7 @@ def make_map(
     values = [torch.randn(shape, generator=generator).to(dtype) for _ in range(layers)]
     ids = [3 * i + 1 for i in range(num_keyframes)]  # not 0..N-1: ids must survive as given
     cache = KVCache.from_layers(
-        keys, values, layout=layout, tokens_per_frame=tokens, keyframe_ids=ids
+        keys, values, layout=layout, tokens_per_frame=tokens, keyframe_ids=ids, storage=storage
     )
     keyframes = tuple(
         Keyframe(

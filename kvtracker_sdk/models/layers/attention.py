@@ -46,7 +46,9 @@ class CacheBuffers(Protocol):
 
     ``buffers(layer)`` returns full-capacity K and V tensors [1, heads, capacity, head_dim] of the
     ``layer``-th cached layer (ordinal among the cached layers); tokens ``[:length]`` are cached,
-    tokens past ``length`` are scratch that a pass may overwrite.
+    tokens past ``length`` are scratch that a pass may overwrite. A cache that fills its buffers
+    on demand (a quantised one dequantises a layer per call) may also offer
+    ``peek_buffers(layer)``: the same tensors unfilled, which ``check_cache_buffers`` then uses.
     """
 
     @property
@@ -69,9 +71,10 @@ def check_cache_buffers(
     """Raise ``CacheError`` unless every cached layer (one per global block in
     ``block_indices``) has K/V buffers [1, num_heads, tokens, head_dim] of ``dtype`` on ``device``."""
     expected = (1, num_heads, head_dim)
+    peek = getattr(cache, "peek_buffers", cache.buffers)  # checking need not fill them
     for ordinal, block_index in enumerate(block_indices):
         try:
-            key_buffer, value_buffer = cache.buffers(ordinal)
+            key_buffer, value_buffer = peek(ordinal)
         except IndexError as exc:
             raise CacheError(
                 f"the cache has no layer {ordinal} (block {block_index}); the model has "
