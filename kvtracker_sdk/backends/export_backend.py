@@ -23,7 +23,12 @@ import numpy as np
 import torch
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
-from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
+from kvtracker_sdk.backends.frame_checks import (
+    check_cache,
+    check_frames,
+    check_masks,
+    check_uniform_lengths,
+)
 from kvtracker_sdk.backends.graph_runner import GraphRunner
 from kvtracker_sdk.backends.onnx_integrity import verify_files
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, OnnxManifest, read_manifest
@@ -110,6 +115,7 @@ class ExportBackend:
         check_cache(cache, self.info, *image.shape[:2])
         start = time.perf_counter()
         with cache.lock:
+            check_uniform_lengths(cache)  # the graph takes one past_length for every layer
             past = [
                 tuple(np.ascontiguousarray(buffer.numpy()) for buffer in cache.buffers(layer))
                 for layer in range(cache.layout.num_layers)

@@ -25,6 +25,7 @@ __all__ = [
     "check_cache",
     "check_frames",
     "check_masks",
+    "check_uniform_lengths",
     "reads_quantized_caches",
 ]
 
@@ -96,4 +97,16 @@ def check_cache(cache: KVCache, info: BackendInfo, height: int, width: int) -> N
         raise ResolutionChangedError(
             f"the cache holds {cache.tokens_per_frame} tokens per keyframe but a {height}x{width} "
             f"frame has {expected}: track at the keyframes' resolution"
+        )
+
+
+def check_uniform_lengths(cache: KVCache) -> None:
+    """An exported tracking graph takes one ``past_length`` for every layer: refuse a cache whose
+    layers hold different numbers of tokens (``cache.pruning.prune_cache`` never makes one; a
+    hand-pruned cache may) with ``BackendMismatchError``."""
+    lengths = {cache.layer_length(i) for i in range(cache.layout.num_layers)}
+    if len(lengths) > 1:
+        raise BackendMismatchError(
+            f"the cache's layers hold different numbers of tokens ({sorted(lengths)}); the ONNX "
+            "tracking graph takes one past_length: prune every layer to the same budget"
         )

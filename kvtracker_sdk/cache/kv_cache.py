@@ -16,6 +16,12 @@ Storage (``kv_storage``): dense buffers in the compute dtype, or — ``storage="
 one layer at a time into a work pair in the compute dtype (scratch region included). ``dtype`` is
 always the compute dtype (what a model reads); ``storage`` names what is kept at rest.
 
+Pruned caches (``cache/pruning.py``): a layer may keep only some of its keyframes' tokens. Each
+layer then has its own length (``layer_length``) and remembers which tokens it kept
+(``kept_tokens``: indices into the unpruned keyframe-major token axis, ``num_keyframes * T``).
+K is stored after RoPE, so dropping a token never needs re-rotation; a tracking pass writes its
+scratch right after each layer's own length. ``length`` is then the longest layer's.
+
 Concurrency: the scratch region is shared, so one tracking pass at a time per cache; callers hold
 ``cache.lock`` around a pass (backends do). Different caches (e.g. the previous map and a map being
 rebuilt on a worker thread) are fully independent.
@@ -56,6 +62,8 @@ class KVCache:
         self.tokens_per_frame = int(tokens_per_frame)
         self.lock = threading.RLock()
         self._keyframe_ids: list[int] = []
+        # per-layer int64 [length_i] indices of the kept tokens; None = every token (unpruned)
+        self._kept: list[torch.Tensor] | None = None
         capacity = max(1, capacity_frames) * self.tokens_per_frame
         self._store: LayerStore = make_store(
             layout,
@@ -77,9 +85,13 @@ class KVCache:
         keyframe_ids: Sequence[int],
         spare_frames: int = 2,
         storage: str | None = None,
+        kept_tokens: Sequence[torch.Tensor] | None = None,
     ) -> KVCache:
         """Wrap the per-layer K/V of a mapping pass ([1 or none, H, N*T, D] each); ``storage``
-        ``"int8"`` / ``"float8_e4m3fn"`` quantises them (one layer at a time)."""
+        ``"int8"`` / ``"float8_e4m3fn"`` quantises them (one layer at a time).
+
+        A pruned cache passes ``kept_tokens`` (per layer, int64 [L_i] increasing indices into
+        the N*T unpruned tokens); layer i's K/V are then [1 or none, H, L_i, D]."""
         if len(keys) != layout.num_layers or len(values) != layout.num_layers:
             raise CacheError(
                 f"expected {layout.num_layers} layers of K and V, got {len(keys)} and {len(values)}"
@@ -94,17 +106,18 @@ class KVCache:
             capacity_frames=n + max(1, spare_frames),
             storage=storage,
         )
-        length = n * tokens_per_frame
+        cache._keyframe_ids = [int(i) for i in keyframe_ids]
+        if kept_tokens is not None:
+            cache._set_kept(kept_tokens)
         for i, (k, v) in enumerate(zip(keys, values, strict=True)):
             k4 = k if k.dim() == 4 else k.unsqueeze(0)
             v4 = v if v.dim() == 4 else v.unsqueeze(0)
-            expected = (1, layout.num_heads, length, layout.head_dim)
+            expected = (1, layout.num_heads, cache.layer_length(i), layout.head_dim)
             if tuple(k4.shape) != expected or tuple(v4.shape) != expected:
                 raise CacheError(
                     f"layer {i}: K {tuple(k4.shape)} / V {tuple(v4.shape)} do not match {expected}"
                 )
             cache._store.write(i, 0, k4, v4)
-        cache._keyframe_ids = [int(i) for i in keyframe_ids]
         return cache
 
     @classmethod
@@ -117,10 +130,11 @@ class KVCache:
         dtype: torch.dtype,
         spare_frames: int = 2,
         storage: str | None = None,
+        kept_tokens: Sequence[torch.Tensor] | None = None,
     ) -> KVCache:
         """A CPU cache listing ``keyframe_ids`` whose K/V are not written yet: the caller fills
         ``stored_parts(i)`` next (a map loader reads a file straight into place, without an
-        intermediate copy)."""
+        intermediate copy). ``kept_tokens``: as in ``from_layers``."""
         ids = [int(i) for i in keyframe_ids]
         if len(set(ids)) != len(ids):
             raise CacheError(f"keyframe ids must be distinct, got {ids}")
@@ -132,7 +146,29 @@ class KVCache:
             storage=storage,
         )
         cache._keyframe_ids = ids
+        if kept_tokens is not None:
+            cache._set_kept(kept_tokens)
         return cache
+
+    def _set_kept(self, kept_tokens: Sequence[torch.Tensor]) -> None:
+        """Check and store per-layer kept indices (increasing, within the unpruned tokens)."""
+        if len(kept_tokens) != self.layout.num_layers:
+            raise CacheError(
+                f"expected kept tokens of {self.layout.num_layers} layers, got {len(kept_tokens)}"
+            )
+        full = self.num_keyframes * self.tokens_per_frame
+        kept = []
+        for layer, index in enumerate(kept_tokens):
+            index = torch.as_tensor(index, dtype=torch.int64).reshape(-1).cpu()
+            if index.numel() and (
+                int(index[0]) < 0 or int(index[-1]) >= full or not bool((index.diff() > 0).all())
+            ):
+                raise CacheError(
+                    f"layer {layer}: kept token indices must increase within [0, {full})"
+                )
+            kept.append(index)
+        self.ensure_capacity(max(len(k) for k in kept) + self.tokens_per_frame)
+        self._kept = kept
 
     # ------------------------------------------------------------------ properties
     @property
@@ -164,8 +200,29 @@ class KVCache:
 
     @property
     def length(self) -> int:
-        """Cached tokens per layer (num_keyframes * tokens_per_frame)."""
-        return self.num_keyframes * self.tokens_per_frame
+        """Cached tokens of the longest layer (num_keyframes * tokens_per_frame unless pruned):
+        scratch past it is free in every layer."""
+        if self._kept is None:
+            return self.num_keyframes * self.tokens_per_frame
+        return max(len(k) for k in self._kept)
+
+    def layer_length(self, layer: int) -> int:
+        """Cached tokens of layer ``layer`` (ordinal among global layers)."""
+        if self._kept is None:
+            return self.num_keyframes * self.tokens_per_frame
+        return len(self._kept[layer])
+
+    @property
+    def pruned(self) -> bool:
+        """Some layer keeps fewer than all of its keyframes' tokens."""
+        return self._kept is not None
+
+    def kept_tokens(self, layer: int) -> torch.Tensor:
+        """int64 [layer_length] indices of layer ``layer``'s cached tokens in the unpruned
+        keyframe-major token axis (``arange(N*T)`` for an unpruned cache)."""
+        if self._kept is None:
+            return torch.arange(self.num_keyframes * self.tokens_per_frame)
+        return self._kept[layer].clone()
 
     @property
     def capacity(self) -> int:
@@ -176,7 +233,8 @@ class KVCache:
     def nbytes(self) -> int:
         """Bytes of the cached K/V at rest (what a map file stores; quantised: data + scales),
         excluding spare capacity."""
-        return self.length * self._store.bytes_per_token()
+        per_layer_token = self._store.bytes_per_token() // self.layout.num_layers
+        return sum(self._lengths()) * per_layer_token
 
     @property
     def allocated_nbytes(self) -> int:
@@ -184,21 +242,25 @@ class KVCache:
         return self._store.allocated_nbytes()
 
     def bytes_per_keyframe(self) -> int:
-        return self.tokens_per_frame * self._store.bytes_per_token()
+        """A keyframe's K/V bytes; in a pruned cache the mean over its keyframes (what a keyframe
+        budget in bytes should count)."""
+        if self._kept is None or not self.num_keyframes:
+            return self.tokens_per_frame * self._store.bytes_per_token()
+        return self.nbytes // self.num_keyframes
 
     def keys(self, layer: int) -> torch.Tensor:
         """[1, H, length, D] cached keys of layer ``layer`` (ordinal among global layers) in the
         compute dtype: a view for a dense cache, a dequantised copy for a quantised one."""
-        return self._store.read(layer, self.length)[0]
+        return self._store.read(layer, self.layer_length(layer))[0]
 
     def values(self, layer: int) -> torch.Tensor:
-        return self._store.read(layer, self.length)[1]
+        return self._store.read(layer, self.layer_length(layer))[1]
 
     def stored_parts(self, layer: int) -> dict[str, torch.Tensor]:
         """Views of what layer ``layer`` keeps at rest for the cached tokens: ``key``/``value``
         [1, H, length, D] (quantised: their data, plus ``key_scale``/``value_scale``
         [1, H, length, 1] float8 e5m2)."""
-        return self._store.parts(layer, self.length)
+        return self._store.parts(layer, self.layer_length(layer))
 
     # ------------------------------------------------------------------ model-facing
     def ensure_capacity(self, tokens: int) -> None:
@@ -213,7 +275,7 @@ class KVCache:
 
         Quantised: one work pair shared by all layers, refilled with this layer's dequantised
         tokens by every call (valid until the next call)."""
-        return self._store.buffers(layer, self.length)
+        return self._store.buffers(layer, self.layer_length(layer))
 
     def peek_buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The tensors ``buffers(layer)`` returns, without filling them (shape/dtype checks)."""
@@ -231,18 +293,67 @@ class KVCache:
             raise CacheError(f"keyframe {keyframe_id} is already in the cache")
         if len(keys) != self.layout.num_layers or len(values) != self.layout.num_layers:
             raise CacheError(f"expected {self.layout.num_layers} layers of K and V")
-        start, stop = self.length, self.length + self.tokens_per_frame
-        expected = (1, self.layout.num_heads, self.tokens_per_frame, self.layout.head_dim)
+        T = self.tokens_per_frame
+        expected = (1, self.layout.num_heads, T, self.layout.head_dim)
         for k, v in zip(keys, values, strict=True):
             for t in (k, v):
                 shape = tuple(t.shape) if t.dim() == 4 else (1, *t.shape)
                 if shape != expected:
                     raise CacheError(f"keyframe K/V shape {shape} does not match {expected}")
         with self.lock:
-            self.ensure_capacity(stop + self.tokens_per_frame)
+            self.ensure_capacity(self.length + 2 * T)
             for i, (k, v) in enumerate(zip(keys, values, strict=True)):
-                self._store.write(i, start, k.reshape(expected), v.reshape(expected))
+                self._store.write(i, self.layer_length(i), k.reshape(expected), v.reshape(expected))
+            self._extend_kept()
             self._keyframe_ids.append(int(keyframe_id))
+
+    def _extend_kept(self) -> None:
+        """A keyframe of T tokens was appended to every layer: its tokens are all kept."""
+        if self._kept is not None:
+            full, T = self.num_keyframes * self.tokens_per_frame, self.tokens_per_frame
+            self._kept = [torch.cat((k, torch.arange(full, full + T))) for k in self._kept]
+
+    def adopt_scratch(self, keyframe_id: int) -> None:
+        """Make the scratch tokens of the last one-frame tracking pass a cached keyframe.
+
+        A tracking pass of one frame leaves its own K/V (T tokens) right after each layer's
+        length; adopting them appends that frame as keyframe ``keyframe_id`` without another
+        pass (incremental keyframes, ``tracking/map_insertion.py``). The caller must hold
+        ``lock`` from the pass to this call (another pass would overwrite the scratch). Dense
+        caches only: a quantised cache's pass writes its scratch into one shared work pair.
+        """
+        if self.quantized:
+            raise CacheError("a quantised cache keeps no per-layer scratch to adopt")
+        if keyframe_id in self._keyframe_ids:
+            raise CacheError(f"keyframe {keyframe_id} is already in the cache")
+        if self.length + self.tokens_per_frame > self.capacity:
+            raise CacheError("the cache has no scratch of a whole frame to adopt")
+        with self.lock:
+            self._extend_kept()
+            self._keyframe_ids.append(int(keyframe_id))
+            self.ensure_capacity(self.length + self.tokens_per_frame)  # scratch for the next pass
+
+    def keep_tokens(self, kept: Sequence[torch.Tensor]) -> None:
+        """Prune in place: layer i keeps only its cached tokens ``kept[i]`` (int64, increasing
+        positions in ``[0, layer_length(i))``), compacted to the front of its storage."""
+        if len(kept) != self.layout.num_layers:
+            raise CacheError(f"expected kept tokens of {self.layout.num_layers} layers")
+        with self.lock:
+            positions = []
+            for i, index in enumerate(kept):
+                index = torch.as_tensor(index, dtype=torch.int64).reshape(-1).cpu()
+                length = self.layer_length(i)
+                if index.numel() and (
+                    int(index[0]) < 0
+                    or int(index[-1]) >= length
+                    or not bool((index.diff() > 0).all())
+                ):
+                    raise CacheError(f"layer {i}: kept positions must increase within [0, {length})")
+                positions.append(index)
+            new_kept = [self.kept_tokens(i)[index] for i, index in enumerate(positions)]
+            for i, index in enumerate(positions):
+                self._store.keep(i, index)
+            self._kept = new_kept
 
     def relabel_keyframes(self, keyframe_ids: Sequence[int]) -> None:
         """Rename the cached keyframes, in cache order (a backend numbers a mapping pass 0..N-1;
@@ -262,12 +373,20 @@ class KVCache:
             raise CacheError(f"unknown keyframe ids {sorted(unknown)}")
         keep = [pos for pos, kf in enumerate(self._keyframe_ids) if kf not in set(keyframe_ids)]
         T = self.tokens_per_frame
-        index = torch.cat([torch.arange(p * T, (p + 1) * T) for p in keep]) if keep else None
+        # new token index of each old keyframe position's first token (-1: dropped)
+        new_start = torch.full((max(1, self.num_keyframes),), -1, dtype=torch.int64)
+        new_start[keep] = torch.arange(len(keep), dtype=torch.int64) * T
         with self.lock:
-            if index is not None:
-                for layer in range(self.layout.num_layers):
-                    self._store.keep(layer, index)
+            kept = []
+            for layer in range(self.layout.num_layers):
+                tokens = self.kept_tokens(layer)
+                new_tokens = new_start[tokens // T]
+                survive = new_tokens >= 0
+                kept.append(new_tokens[survive] + tokens[survive] % T)
+                self._store.keep(layer, survive.nonzero().reshape(-1))
             self._keyframe_ids = [self._keyframe_ids[p] for p in keep]
+            if self._kept is not None:
+                self._kept = kept
 
     def clone(self) -> KVCache:
         """A deep copy of the cached part (no shared storage; quantised data stay quantised)."""
@@ -307,18 +426,19 @@ class KVCache:
             storage=wanted if wanted in QUANTIZED_STORAGES else None,
         )
         for layer in range(self.layout.num_layers):  # one layer's full-precision copy at a time
-            store.write(layer, 0, *self._store.read(layer, self.length))
+            store.write(layer, 0, *self._store.read(layer, self.layer_length(layer)))
         return self._copy(store)
 
     def _lengths(self) -> list[int]:
         """Cached tokens of each layer (the store's operations take per-layer lengths)."""
-        return [self.length] * self.layout.num_layers
+        return [self.layer_length(i) for i in range(self.layout.num_layers)]
 
     def _copy(self, store: LayerStore) -> KVCache:
         out = KVCache.__new__(KVCache)
         out.layout, out.tokens_per_frame = self.layout, self.tokens_per_frame
         out.lock = threading.RLock()
         out._keyframe_ids = list(self._keyframe_ids)
+        out._kept = None if self._kept is None else [k.clone() for k in self._kept]
         out._store = store
         return out
 
@@ -330,6 +450,12 @@ class KVCache:
             or self.dtype != other.dtype
             or self.storage != other.storage
             or self.keyframe_ids != other.keyframe_ids
+            or self.pruned != other.pruned
+        ):
+            return False
+        if not all(
+            torch.equal(self.kept_tokens(i), other.kept_tokens(i))
+            for i in range(self.layout.num_layers)
         ):
             return False
         for layer in range(self.layout.num_layers):
@@ -344,5 +470,5 @@ class KVCache:
             f"KVCache(keyframes={self.num_keyframes}, layers={self.layout.num_layers}, "
             f"heads={self.layout.num_heads}, head_dim={self.layout.head_dim}, "
             f"tokens_per_frame={self.tokens_per_frame}, dtype={self.dtype}, storage={self.storage}, "
-            f"bytes={self.nbytes})"
+            f"bytes={self.nbytes}{', pruned' if self.pruned else ''})"
         )

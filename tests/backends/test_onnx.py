@@ -147,3 +147,20 @@ def test_onnx_backend_exports_a_checkpoint_once(
     assert OnnxBackend.from_pretrained(slot, threads=1).folder == slot
     with pytest.raises(ModelError, match="not an ONNX export"):  # exporting is a layer above
         OnnxBackend.from_pretrained(weights)
+
+
+def test_a_pruned_cache_tracks_as_in_torch_and_unequal_layers_are_refused(
+    onnx_backend: OnnxBackend, onnx_map: MapResult, images: np.ndarray
+) -> None:
+    from kvtracker_sdk.cache.pruning import prune_cache
+
+    cache = onnx_map.cache.clone()
+    prune_cache(cache, keep_ratio=0.5, extra_tokens_per_frame=onnx_backend.info.extra_tokens_per_frame)
+    torch_backend = TorchBackend.from_pretrained(shared_path("golden", "pi3", "weights.safetensors"))
+    expected = torch_backend.track(images[3], cache.clone())
+    tracked = onnx_backend.track(images[3], cache)
+    np.testing.assert_allclose(tracked.pose, expected.pose, atol=1e-5)
+    uneven = onnx_map.cache.clone()
+    uneven.keep_tokens([torch.arange(uneven.layer_length(i) - i) for i in range(uneven.layout.num_layers)])
+    with pytest.raises(BackendMismatchError, match="past_length"):
+        onnx_backend.track(images[3], uneven)

@@ -58,8 +58,9 @@ def test_several_queries_get_their_rows_of_the_mask_only() -> None:
         cache, layout, frames=3, tokens_per_frame=tokens, rope=None,
         dtype=torch.float32, device=torch.device("cpu"),
     )  # fmt: skip
-    assert step.mask is not None and step.mask.shape == (3 * tokens, cache.length + 3 * tokens)
+    mask = step.masks[cache.length]
+    assert mask is not None and mask.shape == (3 * tokens, cache.length + 3 * tokens)
     assert cache.capacity >= cache.length + 3 * tokens  # grown for the queries' scratch
-    first_query = step.mask[:tokens]  # sees every cached token and its own frame only
+    first_query = mask[:tokens]  # sees every cached token and its own frame only
     assert first_query[:, : cache.length].all() and first_query[:, cache.length :][:, :tokens].all()
     assert not first_query[:, cache.length + tokens :].any()

@@ -13,7 +13,8 @@ block, tokens [B, N*T, C]) -> tokens:
 - ``KVRecordingStep``: the mapping pass; also keeps every global block's K (after k_norm and
   RoPE) and V [B, heads, N*T, head_dim] — what a ``KVCache`` stores;
 - ``CacheTrackingStep``: F independent query frames against a cache; each writes its K/V into
-  the cache's scratch after ``cache.length`` and attends over the cached tokens plus its own
+  the cache's scratch after the layer's cached tokens (``cache.layer_length``: a pruned cache's
+  layers differ) and attends over the cached tokens plus its own
   (``Block.forward_track``). The cache is checked **before** it grows, and the mask of several
   queries is built for their rows only ([F*T, past + F*T], not the S x S matrix);
 - ``PastInputsStep``: the exported tracking graphs' step, one frame reading each layer's past
@@ -124,19 +125,23 @@ class CacheTrackingStep:
     ) -> None:
         layout.check_cache(cache, dtype=dtype, device=device)  # before touching it
         self.cache = cache
-        self.past = cache.length
-        cache.ensure_capacity(self.past + frames * tokens_per_frame)
+        self.past = [cache.layer_length(i) for i in range(layout.num_layers)]
+        cache.ensure_capacity(cache.length + frames * tokens_per_frame)
         self.rope = None if rope is None else rope.repeat(frames)
-        self.mask = None  # one frame sees every cached token and itself: no mask
-        if frames > 1:  # [F*T, past + F*T]: the query rows only
-            self.mask = keyframe_query_mask(
-                self.past, frames, tokens_per_frame, queries_only=True, device=device
-            )
+        # one frame sees every cached token and itself: no mask. Several: [F*T, past + F*T],
+        # the query rows only, one per distinct layer length
+        self.masks: dict[int, torch.Tensor | None] = {
+            past: None
+            if frames == 1
+            else keyframe_query_mask(past, frames, tokens_per_frame, queries_only=True, device=device)
+            for past in set(self.past)
+        }
 
     def __call__(self, ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
         key_buffer, value_buffer = self.cache.buffers(ordinal)
+        past = self.past[ordinal]
         return block.forward_track(
-            x, key_buffer, value_buffer, self.past, rope=self.rope, attn_mask=self.mask
+            x, key_buffer, value_buffer, past, rope=self.rope, attn_mask=self.masks[past]
         )
 
 

@@ -45,14 +45,17 @@ class CacheBuffers(Protocol):
     """Per-layer K/V buffers with spare capacity: what a tracking pass reads and scratches.
 
     ``buffers(layer)`` returns full-capacity K and V tensors [1, heads, capacity, head_dim] of the
-    ``layer``-th cached layer (ordinal among the cached layers); tokens ``[:length]`` are cached,
-    tokens past ``length`` are scratch that a pass may overwrite. A cache that fills its buffers
-    on demand (a quantised one dequantises a layer per call) may also offer
+    ``layer``-th cached layer (ordinal among the cached layers); its tokens
+    ``[:layer_length(layer)]`` are cached, the tokens after them are scratch that a pass may
+    overwrite. ``length`` is the longest layer's (layers differ only in a pruned cache). A cache
+    that fills its buffers on demand (a quantised one dequantises a layer per call) may also offer
     ``peek_buffers(layer)``: the same tensors unfilled, which ``check_cache_buffers`` then uses.
     """
 
     @property
     def length(self) -> int: ...
+
+    def layer_length(self, layer: int) -> int: ...
 
     def ensure_capacity(self, tokens: int) -> None: ...
 
