@@ -56,6 +56,7 @@ from kvtracker_sdk.io.map_schema import (
     DENSE_FORMAT_VERSION,
     FORMAT_NAME,
     MAX_GENERATION,
+    PRUNED_FORMAT_VERSION,
     QUANTIZED_CACHE_DTYPES,
 )
 from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
@@ -138,7 +139,10 @@ def _saved_info(
     dtype = _dtype_name(cache.storage)
     return MapInfo(
         # the oldest version that holds this cache: a dense map stays readable by older SDKs
-        format_version=QUANTIZED_CACHE_DTYPES.get(dtype, DENSE_FORMAT_VERSION),
+        format_version=max(
+            QUANTIZED_CACHE_DTYPES.get(dtype, DENSE_FORMAT_VERSION),
+            PRUNED_FORMAT_VERSION if cache.pruned else DENSE_FORMAT_VERSION,
+        ),
         sdk_version=sdk_version,
         created_utc=datetime.now(timezone.utc),
         backend=backend_info,
@@ -154,6 +158,11 @@ def _saved_info(
         user_metadata=dict(keyframe_map.metadata),
         tensor_sha256={},
         preprocessing=keyframe_map.preprocessing,
+        layer_lengths=(
+            tuple(cache.layer_length(i) for i in range(cache.layout.num_layers))
+            if cache.pruned
+            else None
+        ),
     )
 
 

@@ -38,10 +38,12 @@ from kvtracker_sdk.io.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
+    LAYER_LENGTHS_FIELD,
     LEGACY_PREPROCESSING,
     MAX_GENERATION,
     OLDEST_READABLE_VERSION,
     PREPROCESSING_FIELD,
+    PRUNED_FORMAT_VERSION,
     QUANTIZATION_FIELD,
     QUANTIZED_CACHE_DTYPES,
     RIGID_ATOL,
@@ -99,6 +101,8 @@ class MapInfo:
     # the session's input-image intrinsics and where they came from (optional header "camera")
     camera: Camera | None = None
     camera_source: IntrinsicsSource | None = None
+    # a pruned map: tokens kept per cached layer (optional header "layer_lengths"); None = all
+    layer_lengths: tuple[int, ...] | None = None
 
     @property
     def layout(self) -> CacheLayout:
@@ -120,14 +124,17 @@ class MapInfo:
     def cache_nbytes(self) -> int:
         """Bytes of the stored K/V (all layers; quantised: data and scales)."""
         return sum(
-            spec.nbytes for name, spec in self.tensor_schema().items() if name.startswith("layers.")
+            spec.nbytes
+            for name, spec in self.tensor_schema().items()
+            if name.startswith("layers.") and spec.dtype != "I64"  # not a pruned map's indices
         )
 
     def tensor_schema(self) -> dict[str, TensorSpec]:
         """Name -> (safetensors dtype, shape) of every tensor this header declares."""
         return tensor_schema(
-            self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution
-        )
+            self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution,
+            self.layer_lengths,
+        )  # fmt: skip
 
 
 def quantization_description(dtype: str) -> dict[str, str]:
@@ -188,6 +195,8 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "tensor_sha256": _dumps(dict(info.tensor_sha256)),
         PREPROCESSING_FIELD: info.preprocessing,
     }
+    if info.layer_lengths is not None:  # optional: only pruned maps have it
+        metadata[LAYER_LENGTHS_FIELD] = _dumps(list(info.layer_lengths))
     if info.quantized:  # version 2: what the scale tensors mean
         metadata[QUANTIZATION_FIELD] = _dumps(quantization_description(info.dtype))
     if info.camera is not None:  # optional: maps saved without known intrinsics omit it
@@ -401,6 +410,23 @@ def _decode_preprocessing(fields: _Fields) -> str:
     return name
 
 
+def _decode_layer_lengths(
+    fields: _Fields, layout: CacheLayout, full: int, version: int
+) -> tuple[int, ...] | None:
+    """The per-layer token counts of a pruned map (version 2; each within 1..N*T)."""
+    if LAYER_LENGTHS_FIELD not in fields.metadata:
+        return None
+    if version < PRUNED_FORMAT_VERSION:
+        raise fields.fail(f"a pruned map needs format version >= {PRUNED_FORMAT_VERSION}")
+    raw = fields.json(LAYER_LENGTHS_FIELD, list)
+    if len(raw) != layout.num_layers:
+        raise fields.fail(f"'{LAYER_LENGTHS_FIELD}' must list {layout.num_layers} layers")
+    lengths = tuple(fields.integer(v, f"'{LAYER_LENGTHS_FIELD}' entry", 1) for v in raw)
+    if max(lengths) > full:
+        raise fields.fail(f"'{LAYER_LENGTHS_FIELD}' exceed the {full} tokens of the keyframes")
+    return lengths
+
+
 def _decode_cache_dtype(fields: _Fields, version: int) -> str:
     """The cache dtype; a quantised one needs version 2 and the scales' description."""
     dtype = fields.text("dtype")
@@ -441,6 +467,9 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         raise fields.fail("the cache's keyframe ids differ from the keyframes' ids")
     fields.json("tracker_config", dict)  # the tracker parses it later: fail here, typed
     camera, camera_source = _decode_camera(fields)
+    layer_lengths = _decode_layer_lengths(
+        fields, backend.layout, len(cache_keyframe_ids) * tokens_per_frame, version
+    )
     return MapInfo(
         format_version=version,
         sdk_version=fields.text("sdk_version"),
@@ -461,6 +490,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         preprocessing=_decode_preprocessing(fields),
         camera=camera,
         camera_source=camera_source,
+        layer_lengths=layer_lengths,
     )
 
 

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import torch
 
 from kvtracker_sdk.cache.kv_cache import KVCache
-from kvtracker_sdk.errors import MapCorruptedError, MapFormatError, MapIOError
+from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError, MapIOError
 from kvtracker_sdk.io.map_format import MapInfo
-from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES
+from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES, layer_kept
 from kvtracker_sdk.io.map_tensors import layer_tensor_names, stored_compute_dtype
 
 __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
@@ -148,30 +148,47 @@ def read_map_tensors(
 
     ``offsets`` gives each tensor's first byte in the file (header and prefix included).
     """
-    cache = KVCache.preallocated(
-        info.layout,
-        info.tokens_per_frame,
-        info.cache_keyframe_ids,
-        dtype=stored_compute_dtype(info),
-        storage=info.dtype,
-    )
+    layers = range(info.layout.num_layers)
+    kept_names = {layer_kept(i) for i in layers} if info.layer_lengths is not None else set()
+    kept_tokens = None
+    if info.layer_lengths is not None:  # a pruned map: its (small) token indices come first
+        kept_tokens = [torch.empty(length, dtype=torch.int64) for length in info.layer_lengths]
+        for layer in layers:
+            chunks = [(_bytes_of(kept_tokens[layer]), offsets[layer_kept(layer)])]
+            digest = _read_tensor(file, chunks, verify)
+            if verify and digest != info.tensor_sha256.get(layer_kept(layer)):
+                raise MapCorruptedError(f"{file.source}: checksum mismatch in {layer_kept(layer)}")
+    try:
+        cache = KVCache.preallocated(
+            info.layout,
+            info.tokens_per_frame,
+            info.cache_keyframe_ids,
+            dtype=stored_compute_dtype(info),
+            storage=info.dtype,
+            kept_tokens=kept_tokens,
+        )
+    except CacheError as exc:
+        raise MapCorruptedError(f"{file.source}: the kept token indices are invalid: {exc}") from exc
     jobs: dict[str, list[tuple[memoryview, int]]] = {}
-    for layer in range(info.layout.num_layers):
+    for layer in layers:
         names = layer_tensor_names(layer)
         for part, view in cache.stored_parts(layer).items():
-            # the file holds [heads, N*T, X]; each head goes to its own contiguous slice
-            # [N*T, X] of the [1, heads, capacity, X] buffer (X: head_dim, or 1 for scales)
+            # the file holds [heads, L, X] (L = N*T unless pruned); each head goes to its own
+            # contiguous slice [L, X] of the [1, heads, capacity, X] buffer (X: head_dim, or 1
+            # for scales)
             heads = [_bytes_of(view[0, head]) for head in range(info.layout.num_heads)]
             jobs[names[part]] = [
                 (chunk, offsets[names[part]] + head * len(chunk)) for head, chunk in enumerate(heads)
             ]
     keyframe_tensors: dict[str, torch.Tensor] = {}
     for name, spec in info.tensor_schema().items():
-        if name not in jobs:
+        if name not in jobs and name not in kept_names:
             keyframe_tensors[name] = torch.empty(spec.shape, dtype=_TORCH_DTYPES[spec.dtype])
             jobs[name] = [(_bytes_of(keyframe_tensors[name]), offsets[name])]
     with ThreadPoolExecutor(max_workers=_WORKERS) as pool:
         digests = pool.map(lambda chunks: _read_tensor(file, chunks, verify), jobs.values())
         named = dict(zip(jobs, digests, strict=True))
     file.check_unchanged()
+    if verify:  # the kept indices were checked above; the caller's check must not miss them
+        named.update({name: info.tensor_sha256[name] for name in kept_names})
     return keyframe_tensors, cache, {k: v for k, v in named.items() if v is not None}

@@ -9,6 +9,7 @@ Tensors (N keyframes, T tokens per frame, H x W model resolution, L cached layer
 
     name                               dtype     shape                   content
     layers.{i}.key, layers.{i}.value   cache     [heads, N*T, head_dim]  K/V of cached layer i, keyframe-major
+    layers.{i}.kept_tokens             int64     [L_i]                   pruned maps only (below)
     layers.{i}.key_scale, .value_scale F8_E5M2   [heads, N*T, 1]         quantised caches only (version 2):
                                                                          K = key * key_scale per token and head
     keyframes.image                    uint8     [N, H, W, 3]            RGB at model resolution
@@ -20,6 +21,10 @@ Tensors (N keyframes, T tokens per frame, H x W model resolution, L cached layer
     keyframes.confidence               float32   [N, H, W]               per-pixel confidence in [0, 1]
     keyframes.mean_confidence          float64   [N]                     mean confidence over the mask
     keyframes.local_points             float32   [N, H, W, 3]            camera-frame points, world scale
+
+A pruned map (``cache/pruning.py``, version 2) has the header field ``layer_lengths`` (L_i per
+cached layer): its K/V (and scales) are then [heads, L_i, ...] and ``layers.{i}.kept_tokens``
+lists which of the N*T keyframe tokens layer i kept (increasing).
 
 The gauge (raw frame of the cache -> world) and every other scalar live in the JSON header.
 
@@ -52,14 +57,17 @@ __all__ = [
     "SCALE_CODE",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "LAYER_LENGTHS_FIELD",
     "LEGACY_PREPROCESSING",
     "MAX_GENERATION",
     "MAX_HEADER_BYTES",
     "OLDEST_READABLE_VERSION",
     "PREPROCESSING_FIELD",
+    "PRUNED_FORMAT_VERSION",
     "RIGID_ATOL",
     "TensorSpec",
     "check_tensor_table",
+    "layer_kept",
     "layer_key",
     "layer_key_scale",
     "layer_value",
@@ -76,6 +84,9 @@ QUANTIZATION_FIELD = "cache_quantization"
 # Optional header field (no version bump: a version-1 reader ignores it): the name of the
 # preprocessing that prepared the keyframe images; absent = LEGACY_PREPROCESSING.
 PREPROCESSING_FIELD = "preprocessing"
+# Header field of a pruned map (version 2): the number of tokens each cached layer kept.
+LAYER_LENGTHS_FIELD = "layer_lengths"
+PRUNED_FORMAT_VERSION = 2  # the oldest version that holds a pruned map
 # Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
 # A pickle or a zip read as a header length gives a number far above this.
 MAX_HEADER_BYTES = 8 * 1024 * 1024
@@ -137,6 +148,10 @@ def layer_value(layer: int) -> str:
     return f"layers.{layer}.value"
 
 
+def layer_kept(layer: int) -> str:
+    return f"layers.{layer}.kept_tokens"
+
+
 def layer_key_scale(layer: int) -> str:
     return f"layers.{layer}.key_scale"
 
@@ -151,18 +166,21 @@ def tensor_schema(
     num_keyframes: int,
     tokens_per_frame: int,
     resolution: tuple[int, int],
+    layer_lengths: tuple[int, ...] | None = None,
 ) -> dict[str, TensorSpec]:
-    """Name -> spec of every tensor of a map with these properties (see the module table)."""
+    """Name -> spec of every tensor of a map with these properties (see the module table);
+    ``layer_lengths`` for a pruned map."""
     n, (h, w) = num_keyframes, resolution
-    kv = TensorSpec(
-        CACHE_DTYPES[cache_dtype][0], (layout.num_heads, n * tokens_per_frame, layout.head_dim)
-    )
-    scale = TensorSpec(SCALE_CODE, (layout.num_heads, n * tokens_per_frame, 1))
     schema = {}
     for layer in range(layout.num_layers):
+        length = n * tokens_per_frame if layer_lengths is None else layer_lengths[layer]
+        kv = TensorSpec(CACHE_DTYPES[cache_dtype][0], (layout.num_heads, length, layout.head_dim))
         schema[layer_key(layer)] = kv
         schema[layer_value(layer)] = kv
+        if layer_lengths is not None:
+            schema[layer_kept(layer)] = TensorSpec("I64", (length,))
         if cache_dtype in QUANTIZED_CACHE_DTYPES:
+            scale = TensorSpec(SCALE_CODE, (layout.num_heads, length, 1))
             schema[layer_key_scale(layer)] = scale
             schema[layer_value_scale(layer)] = scale
     schema.update(

@@ -35,6 +35,7 @@ from kvtracker_sdk.io.map_schema import (
     RIGID_ATOL,
     T_WORLD_CAM,
     TIMESTAMP,
+    layer_kept,
     layer_key,
     layer_key_scale,
     layer_value,
@@ -128,14 +129,17 @@ def layer_tensor_names(layer: int) -> dict[str, str]:
 
 
 def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
-    """Contiguous CPU copies [heads, N*T, head_dim or 1] of what every layer stores at rest (a
-    quantised cache: its data and scales, never a dequantised copy)."""
+    """Contiguous CPU copies [heads, L_i, head_dim or 1] of what every layer stores at rest (a
+    quantised cache: its data and scales, never a dequantised copy; L_i = N*T unless pruned, and a
+    pruned cache adds each layer's kept token indices)."""
     layers = {}
     with cache.lock:  # a consistent snapshot even if another thread edits the cache afterwards
         for i in range(cache.layout.num_layers):
             names = layer_tensor_names(i)
             for part, view in cache.stored_parts(i).items():
                 layers[names[part]] = torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
+            if cache.pruned:
+                layers[layer_kept(i)] = cache.kept_tokens(i).contiguous()
     return layers
 
 
@@ -242,6 +246,9 @@ def map_from_tensors(
             info.cache_keyframe_ids,
             dtype=stored_compute_dtype(info),
             storage=info.dtype,
+            kept_tokens=None
+            if info.layer_lengths is None
+            else [tensors[layer_kept(i)] for i in range(info.layout.num_layers)],
         )
         for layer in range(info.layout.num_layers):
             names = layer_tensor_names(layer)
