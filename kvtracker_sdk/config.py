@@ -32,6 +32,7 @@ __all__ = [
     "DebugConfig",
     "EvictionPolicy",
     "KeyframingConfig",
+    "MapCompactionConfig",
     "ObjectConfig",
     "ObjectPreprocessing",
     "RejectionConfig",
@@ -189,6 +190,40 @@ class ThreadingConfig(_Section):
     new map is swapped in atomically at a later ``push_frame`` (design doc, optional)."""
 
 
+class MapCompactionConfig(_Section):
+    """Smaller maps and cheaper keyframes (issue 16; ``kvtracker_sdk.cache.pruning``). Every
+    switch is off by default: the accuracy cost on real weights is unmeasured (README,
+    "Compact maps")."""
+
+    keep_ratio: float | None = Field(default=None, gt=0.0, le=1.0)
+    """Token pruning once per rebuild: the fraction of each global layer's cached tokens kept,
+    chosen by key redundancy; keyframe 0 and every frame's register/camera tokens are always kept.
+    None: keep every token."""
+
+    prune_score: Literal["key_diversity", "uniform"] = "key_diversity"
+    """Which tokens pruning drops: ``key_diversity`` (InfiniteVGGT: keys closest to the layer's
+    mean key first) or ``uniform`` (an evenly spread subset of every frame's patches)."""
+
+    object_tokens: bool = False
+    """Object mode with mask preprocessing: drop the cached tokens of patches outside each
+    keyframe's dilated object mask (black in the masked input)."""
+
+    object_dilation_patches: int = Field(default=1, ge=0)
+    """Dilation of the object mask before dropping tokens, in patches (14 px)."""
+
+    incremental_keyframes: bool = False
+    """Add a keyframe by one tracking pass against the map, keeping the frame's K/V (the other
+    keyframes' K/V and poses stay as they are) instead of re-running the mapping pass over all
+    keyframes. PyTorch backends only (others rebuild)."""
+
+    rebuild_every: int = Field(default=4, ge=1)
+    """With incremental keyframes: a full rebuild after this many insertions."""
+
+    rebuild_below: float = Field(default=0.8, gt=0.0, le=1.0)
+    """With incremental keyframes: a candidate whose mean confidence in its insertion pass is
+    below this fraction of keyframe 0's gets a full rebuild instead."""
+
+
 class DebugConfig(_Section):
     """Switches for measuring what a component buys; keep the defaults in production."""
 
@@ -218,6 +253,7 @@ class TrackerConfig(_Section):
     relocalization: RelocalizationConfig = RelocalizationConfig()
     object: ObjectConfig = ObjectConfig()
     threading: ThreadingConfig = ThreadingConfig()
+    compaction: MapCompactionConfig = MapCompactionConfig()
     cache_dtype: Literal["backend", "int8", "fp8"] = "backend"
     """How the map's K/V are kept between rebuilds and in saved maps (issue 16): ``backend``
     (default) in the backend's dtype (fp32 or bf16); ``int8`` or ``fp8`` (e4m3) quantised with a

@@ -64,6 +64,8 @@ class KeyframeMap:
     resolution: tuple[int, int] = (0, 0)  # (H, W) model input
     metadata: dict[str, str] = field(default_factory=dict)
     preprocessing: str = LEGACY_PREPROCESSING  # name of what prepared the keyframe images
+    # keyframes inserted incrementally since the last full mapping pass (not saved in files)
+    insertions: int = 0
 
     @property
     def num_keyframes(self) -> int:

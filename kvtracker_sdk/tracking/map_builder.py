@@ -18,7 +18,8 @@ import torch
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
-from kvtracker_sdk.config import RejectionConfig
+from kvtracker_sdk.cache.pruning import object_token_mask, prune_cache
+from kvtracker_sdk.config import MapCompactionConfig, RejectionConfig
 from kvtracker_sdk.errors import BackendError, MapPreprocessingError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.tracking.gauge import (
@@ -30,7 +31,7 @@ from kvtracker_sdk.tracking.gauge import (
 )
 from kvtracker_sdk.tracking.quality import masked_mean
 
-__all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map"]
+__all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map", "compact_cache"]
 
 
 @dataclass(frozen=True)
@@ -110,16 +111,50 @@ def _check_finite(poses: np.ndarray, confidence: np.ndarray, cache: KVCache) -> 
             raise BackendError(f"the mapping pass returned non-finite K/V (cache layer {layer})")
 
 
+def compact_cache(
+    cache: KVCache,
+    masks: Sequence[np.ndarray | None],
+    backend: Backend,
+    compaction: MapCompactionConfig,
+    *,
+    object_masked: bool,
+) -> None:
+    """Prune a fresh mapping pass's cache as ``compaction`` says (``cache/pruning.py``).
+
+    ``object_masked``: the frames were masked to the object (black elsewhere), so the tokens of
+    patches outside the keyframes' dilated ``masks`` [h, w] may go too."""
+    info = backend.info
+    allowed = None
+    if object_masked and compaction.object_tokens and any(m is not None for m in masks):
+        allowed = object_token_mask(
+            masks,
+            patch_size=info.patch_size,
+            extra_tokens_per_frame=info.extra_tokens_per_frame,
+            dilation_patches=compaction.object_dilation_patches,
+        )
+    if compaction.keep_ratio is not None or allowed is not None:
+        prune_cache(
+            cache,
+            keep_ratio=compaction.keep_ratio or 1.0,
+            extra_tokens_per_frame=info.extra_tokens_per_frame,
+            allowed=allowed,
+            score=compaction.prune_score,
+        )
+
+
 def build_map(
     backend: Backend,
     request: RebuildRequest,
     *,
     rejection: RejectionConfig,
     align_gauge: bool = True,
+    compaction: MapCompactionConfig | None = None,
+    object_masked: bool = False,
     cache_storage: str | None = None,
 ) -> RebuildOutcome:
     """Run the mapping pass for ``request`` and build the new map (see module docstring);
-    ``cache_storage`` ``"int8"`` / ``"fp8"`` quantises the pass's cache (None: as it came)."""
+    ``compaction`` prunes its cache (``compact_cache``), then ``cache_storage`` ``"int8"`` /
+    ``"fp8"`` quantises it (None: as it came)."""
     start = time.perf_counter()
     previous, candidate_frame = request.previous, request.candidate
     if previous is not None and previous.preprocessing != candidate_frame.preprocessing:
@@ -153,8 +188,14 @@ def build_map(
         )
         for i, source in enumerate(sources)
     )
-    cache = result.cache if cache_storage is None else result.cache.to(storage=cache_storage)
+    cache = result.cache
     cache.relabel_keyframes([kf.keyframe_id for kf in keyframes])
+    if compaction is not None:  # pruned first: scores from the exact keys, fewer to quantise
+        compact_cache(
+            cache, [s.mask for s in sources], backend, compaction, object_masked=object_masked
+        )
+    if cache_storage is not None:
+        cache = cache.to(storage=cache_storage)
     new_map = KeyframeMap(
         keyframes, cache, gauge, generation=request.generation, resolution=size,
         preprocessing=candidate_frame.preprocessing,

@@ -38,18 +38,14 @@ import torch
 
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
-from kvtracker_sdk.config import TrackerConfig, TrackingMode
+from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import MappingFailedError, MapPreprocessingError, StateError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import keyframes as policy
 from kvtracker_sdk.tracking.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.frame_input import PreparedFrame
-from kvtracker_sdk.tracking.map_builder import (
-    KeyframeCandidate,
-    RebuildOutcome,
-    RebuildRequest,
-    build_map,
-)
+from kvtracker_sdk.tracking.map_builder import KeyframeCandidate, RebuildOutcome, RebuildRequest
+from kvtracker_sdk.tracking.map_insertion import rebuild_or_insert
 from kvtracker_sdk.tracking.mapper import Mapper
 from kvtracker_sdk.types import MapStatus
 
@@ -290,14 +286,22 @@ class MapKeeper:
         )
         self._request = request
         self._started += 1
-        storage = self._config.cache_dtype
+        config = self._config
+        # masked object frames are black off the object: their tokens there may be dropped
+        object_masked = (
+            config.mode == TrackingMode.OBJECT
+            and config.object.preprocessing == ObjectPreprocessing.MASK
+        )
+        storage = config.cache_dtype
         self._mapper.submit(
             partial(
-                build_map,
+                rebuild_or_insert,
                 backend,
                 request,
-                rejection=self._config.rejection,
-                align_gauge=self._config.debug.gauge_alignment,
+                rejection=config.rejection,
+                align_gauge=config.debug.gauge_alignment,
+                compaction=config.compaction,
+                object_masked=object_masked,
                 cache_storage=None if storage == "backend" else storage,
             )
         )
