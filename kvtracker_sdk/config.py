@@ -22,7 +22,7 @@ import enum
 from collections.abc import Mapping
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.types import HeadSet
@@ -33,7 +33,9 @@ __all__ = [
     "EvictionPolicy",
     "KeyframingConfig",
     "MapCompactionConfig",
+    "OBJECT_MAX_KEYFRAMES",
     "ObjectConfig",
+    "ObjectKeyframeRule",
     "ObjectPreprocessing",
     "RejectionConfig",
     "RelocalizationConfig",
@@ -71,6 +73,19 @@ class ObjectPreprocessing(str, enum.Enum):
 
     MASK = "mask"  # pixels outside the mask (or bbox) become black
     CROP = "crop"  # crop to the mask's (or bbox's) box dilated by ``crop_margin_px``
+
+
+class ObjectKeyframeRule(str, enum.Enum):
+    """When object mode adds a keyframe, judged from the object centre (``tracking/keyframes.py``)."""
+
+    VIEW_DIRECTION = "view_direction"  # the angle between view directions exceeds the threshold
+    AZIMUTH_ELEVATION = "azimuth_elevation"  # the paper's: |Δazimuth| or |Δelevation|, each alone
+
+
+# Object mode's default keyframe budget (KV-Tracker paper: 50-60 keyframes usually cover an
+# object; one 10-degree orbit alone takes 36).
+OBJECT_MAX_KEYFRAMES = 60
+SCENE_MAX_KEYFRAMES = 32
 
 
 def _error_lines(error: ValidationError, prefix: tuple[object, ...] = ()) -> list[str]:
@@ -114,9 +129,11 @@ class _Section(BaseModel):
 class BudgetConfig(_Section):
     """Upper bounds on the map; when a new keyframe would exceed them, one is evicted."""
 
-    max_keyframes: int | None = Field(default=32, ge=2)
-    """At most this many keyframes (None: no count limit). SDK default, not from the paper: a
-    rebuild costs O((N·M)²) in the number of keyframes N, so the map needs a bound."""
+    max_keyframes: int | None = Field(default=SCENE_MAX_KEYFRAMES, ge=2)
+    """At most this many keyframes (None: no count limit). Scene mode: 32, an SDK default, not from
+    the paper: a rebuild costs O((N·M)²) in the number of keyframes N, so the map needs a bound.
+    Object mode: 60 unless set (``OBJECT_MAX_KEYFRAMES``; KV-Tracker paper: 50-60 keyframes
+    usually cover an object)."""
 
     max_cache_bytes: int | None = Field(default=None, gt=0)
     """At most this many bytes of K/V (None: no byte limit). Full Pi3 at d=308 in fp32 needs about
@@ -134,8 +151,16 @@ class KeyframingConfig(_Section):
     """Scene mode: a keyframe every this many frames (KV-Tracker paper, scene tracking)."""
 
     view_angle_deg: float = Field(default=10.0, gt=0.0, lt=180.0)
-    """Object mode: a keyframe when the camera's azimuth or elevation around the object centre
-    differs from every keyframe's by more than this (KV-Tracker paper, object tracking)."""
+    """Object mode: the threshold τ of ``object_rule`` in degrees (KV-Tracker paper: 10°)."""
+
+    object_rule: ObjectKeyframeRule = ObjectKeyframeRule.VIEW_DIRECTION
+    """Object mode: a keyframe when the angle between the unit directions from the object centre
+    to the camera and to *every* keyframe exceeds ``view_angle_deg`` (``view_direction``, the
+    default: one 10° ring adds ~36 keyframes, a second ring 30° higher ~31, an orbit near the pole
+    ~1). ``azimuth_elevation`` is the KV-Tracker paper's rule as written (min |Δazimuth| or min
+    |Δelevation| over the keyframes, each axis alone): it adds no keyframe on a second ring and
+    one per 10° of azimuth on an orbit near the pole, where views differ by less than 10°.
+    Compared on synthetic orbits by ``benchmarks/object_keyframe_rules.py``."""
 
     budget: BudgetConfig = BudgetConfig()
 
@@ -268,6 +293,32 @@ class TrackerConfig(_Section):
 
     debug: DebugConfig = DebugConfig()
 
+    @model_validator(mode="before")
+    @classmethod
+    def _object_mode_defaults(cls, data: Any) -> Any:
+        """Object mode sizes the keyframe budget for an object when the caller left it unset."""
+        if not isinstance(data, Mapping) or str(_value(data.get("mode"))) != "object":
+            return data
+        keyframing = data.get("keyframing")
+        if isinstance(keyframing, KeyframingConfig):
+            section = keyframing.budget
+            if "max_keyframes" in section.model_fields_set or "budget" in keyframing.model_fields_set:
+                return data
+            keyframing = keyframing.model_dump(mode="json", exclude={"budget"})
+        elif keyframing is None:
+            keyframing = {}
+        elif not isinstance(keyframing, Mapping):
+            return data  # not a section: validation reports it
+        budget_data = keyframing.get("budget", {})
+        if isinstance(budget_data, BudgetConfig):
+            if "max_keyframes" in budget_data.model_fields_set:
+                return data
+            budget_data = budget_data.model_dump(mode="json", exclude={"max_keyframes"})
+        if not isinstance(budget_data, Mapping) or "max_keyframes" in budget_data:
+            return data
+        budget = {**budget_data, "max_keyframes": OBJECT_MAX_KEYFRAMES}
+        return {**data, "keyframing": {**keyframing, "budget": budget}}
+
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrackerConfig:
         """Validate a nested dict (e.g. from JSON or a map file); raises ConfigError."""
@@ -282,6 +333,14 @@ class TrackerConfig(_Section):
     def updated(self, **changes: Any) -> TrackerConfig:
         """A validated copy with ``changes``; nested sections merge (``keyframing={...}``)."""
         data = self.to_dict()
+        if "mode" in changes and str(_value(changes["mode"])) != self.mode.value:
+            # a mode switch takes the new mode's keyframe budget unless it was changed by hand
+            budget = data["keyframing"]["budget"]
+            if budget["max_keyframes"] in (SCENE_MAX_KEYFRAMES, OBJECT_MAX_KEYFRAMES):
+                budget["max_keyframes"] = (
+                    OBJECT_MAX_KEYFRAMES if str(_value(changes["mode"])) == "object"
+                    else SCENE_MAX_KEYFRAMES
+                )
         for key, value in changes.items():
             if isinstance(value, BaseModel):
                 value = value.model_dump(mode="json")
@@ -290,6 +349,11 @@ class TrackerConfig(_Section):
             else:
                 data[key] = value
         return TrackerConfig.from_dict(data)
+
+
+def _value(value: Any) -> Any:
+    """An enum's value, anything else as is (modes arrive as strings or ``TrackingMode``)."""
+    return value.value if isinstance(value, enum.Enum) else value
 
 
 def _merge(base: dict[str, Any], changes: Mapping[str, Any]) -> dict[str, Any]:

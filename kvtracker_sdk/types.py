@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from kvtracker_sdk.errors import InputError, MappingFailedError, TrackingFailedError
+from kvtracker_sdk.geometry.boxes import ImageBox, OrientedBox
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import (
     check_rigid,
@@ -27,7 +28,10 @@ __all__ = [
     "FrameResult",
     "HeadSet",
     "MapStatus",
+    "ObjectFrame",
+    "ObjectRegion",
     "Pose",
+    "RegionSource",
     "StateReason",
     "TrackedPose",
     "TrackerSnapshot",
@@ -154,6 +158,98 @@ class MapStatus:
     failed_tracks: int = 0
 
 
+class RegionSource(str, enum.Enum):
+    """Where a frame's object region (``FrameResult.region``) comes from."""
+
+    GIVEN = "given"  # the app passed a mask or a box with this frame
+    SEGMENTED = "segmented"  # the app's ``Segmenter`` answered the predicted region's prompt
+    PREDICTED = "predicted"  # the map's object points projected with this frame's tracked pose
+    HELD = "held"  # no trusted pose (loss, relocalisation, no map yet): the last region, kept
+
+
+@dataclass(frozen=True)
+class ObjectRegion:
+    """The object's region in one input image (pixels of the pushed frame).
+
+    ``box``: the object's tight box (x0, y0, x1, y1), x1/y1 exclusive (``geometry/boxes.py``);
+    ``context_box``: ``box`` dilated by ``object.crop_margin_px`` (the KV-Tracker paper's 50 px of
+    context) and clipped to the image; ``mask``: bool [H, W] of the object's pixels (a box given
+    alone gives its rectangle), made on access from a bit-packed crop, so that a long run's
+    results stay small; ``source``: see ``RegionSource``; ``frame_index``: the frame the region
+    was made for (an older one when ``source`` is HELD); ``image_size``: (H, W).
+    Build one from a mask with ``ObjectRegion.from_mask``.
+    """
+
+    box: ImageBox
+    context_box: ImageBox
+    source: RegionSource
+    frame_index: int
+    image_size: tuple[int, int]
+    mask_window: tuple[int, int, int, int]  # (row0, col0, rows, cols) of the packed mask crop
+    mask_bits: np.ndarray = field(repr=False)  # np.packbits of the crop, row-major
+
+    def __post_init__(self) -> None:
+        self.mask_bits.setflags(write=False)
+
+    @classmethod
+    def from_mask(
+        cls, mask: np.ndarray, *, box: ImageBox, context_box: ImageBox, source: RegionSource,
+        frame_index: int,
+    ) -> ObjectRegion:
+        """A region over bool [H, W] ``mask`` (stored as its packed crop to the mask's pixels)."""
+        mask = np.asarray(mask, dtype=bool)
+        rows = np.flatnonzero(mask.any(axis=1))
+        cols = np.flatnonzero(mask.any(axis=0))
+        if rows.size == 0:
+            window = (0, 0, 0, 0)
+            bits = np.zeros(0, dtype=np.uint8)
+        else:
+            window = (int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1),
+                      int(cols[-1] - cols[0] + 1))
+            crop = mask[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+            bits = np.packbits(crop, axis=None)
+        size = (int(mask.shape[0]), int(mask.shape[1]))
+        return cls(tuple(float(v) for v in box), tuple(float(v) for v in context_box),  # type: ignore[arg-type]
+                   source, int(frame_index), size, window, bits)
+
+    @property
+    def mask(self) -> np.ndarray:
+        """bool [H, W] of the object's pixels (a new array on every access)."""
+        out = np.zeros(self.image_size, dtype=bool)
+        row0, col0, rows, cols = self.mask_window
+        if rows and cols:
+            crop = np.unpackbits(self.mask_bits, count=rows * cols).astype(bool)
+            out[row0 : row0 + rows, col0 : col0 + cols] = crop.reshape(rows, cols)
+        return out
+
+    def held(self) -> ObjectRegion:
+        """This region, kept for a later frame (``source`` HELD; the same mask and boxes)."""
+        return replace(self, source=RegionSource.HELD)
+
+
+@dataclass(frozen=True)
+class ObjectFrame:
+    """Object mode's anchor for AR content, in the tracker's world frame.
+
+    ``T_world_object``: origin at the object centre (the mean of the map's fused object points),
+    axes those of keyframe 0's camera (OpenCV: x right, y down, z forward as keyframe 0 saw the
+    object). ``extent``: an oriented box of the fused points, its pose in *object* coordinates
+    (``extent.T_ref_box`` is ``T_object_box``). ``num_points``: fused points it was fitted to;
+    ``map_generation``: the map it comes from (it moves a little with every rebuild).
+    Per frame, ``FrameResult.T_cam_object = inv(T_world_cam) @ T_world_object``.
+    """
+
+    T_world_object: np.ndarray
+    extent: OrientedBox
+    num_points: int
+    map_generation: int
+
+    def __post_init__(self) -> None:
+        matrix = np.array(self.T_world_object, dtype=np.float64, copy=True)
+        matrix.setflags(write=False)
+        object.__setattr__(self, "T_world_object", matrix)
+
+
 def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:
     return MappingProxyType(dict(values or {}))
 
@@ -169,6 +265,9 @@ class FrameResult:
     carries on with the next frame. ``intrinsics`` is the camera of the *input* image (its pixels, undistorted if the given camera had distortion), and
     ``intrinsics_source`` says whether it was given, predicted by the network (DA3) or
     estimated from the network's local points (Pi3); both None when none is known yet.
+    Object mode: ``region`` is the object's region in this frame (``ObjectRegion``; None in scene
+    mode) and ``T_cam_object`` the object frame (``ObjectFrame``) in this camera's frame, 4x4
+    (None without a valid pose or before the map holds object points).
     """
 
     frame_index: int
@@ -185,8 +284,14 @@ class FrameResult:
     error: TrackingFailedError | None = None
     intrinsics: Camera | None = None
     intrinsics_source: IntrinsicsSource | None = None
+    region: ObjectRegion | None = None
+    T_cam_object: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.T_cam_object is not None:
+            matrix = np.array(self.T_cam_object, dtype=np.float64, copy=True)
+            matrix.setflags(write=False)
+            object.__setattr__(self, "T_cam_object", matrix)
         object.__setattr__(self, "timings_ms", _frozen_mapping(self.timings_ms))
         object.__setattr__(self, "extras", MappingProxyType(dict(self.extras)))
 

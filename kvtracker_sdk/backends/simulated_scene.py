@@ -187,6 +187,36 @@ class SimulatedScene:
         on_object = (disc >= 0) & (hit > 0) & (hit < room)
         return np.where(on_object, hit, room), on_object
 
+    def object_box(
+        self, T_world_cam: np.ndarray, size: tuple[int, int], K: np.ndarray | None = None
+    ) -> tuple[float, float, float, float] | None:
+        """The box (x0, y0, x1, y1) of the sphere's true silhouette in an image of ``size`` =
+        (H, W) with intrinsics ``K`` (default ``camera_matrix(size)``), clipped to the image, in
+        the SDK's box convention (pixel (c, r) covers [c, c + 1) x [r, r + 1)); None unless the
+        whole sphere lies in front of the camera and its silhouette meets the image.
+
+        Exact and cheap (no ray cast): the silhouette's tangent lines u = const and v = const
+        are the lines l with lᵀ C* l = 0, C* = K (c cᵀ - r² I) Kᵀ the dual conic of a sphere of
+        centre c (camera frame) and radius r.
+        """
+        height, width = size
+        K = camera_matrix(size) if K is None else np.asarray(K, dtype=np.float64)
+        R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        c = R.T @ (self.object_centre - t)
+        r = self.object_radius
+        if c[2] <= r:
+            return None
+        dual = K @ (np.outer(c, c) - r * r * np.eye(3)) @ K.T
+        bounds = []
+        for axis in (0, 1):  # tangents u = const, then v = const
+            a, b, q = dual[2, 2], dual[axis, 2], dual[axis, axis]
+            root = np.sqrt(max(b * b - a * q, 0.0))
+            bounds.append(((b - root) / a + 0.5, (b + root) / a + 0.5))  # centres -> box coords
+        (x0, x1), (y0, y1) = bounds
+        box = (max(0.0, float(x0)), max(0.0, float(y0)), min(float(width), float(x1)),
+               min(float(height), float(y1)))
+        return box if box[0] < box[2] and box[1] < box[3] else None
+
 
 def encode_frame_index(index: int) -> tuple[int, int]:
     """(red, green) code of a frame index."""

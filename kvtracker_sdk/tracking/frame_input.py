@@ -10,6 +10,8 @@ Accepted input (design doc, "Per-frame result"):
 * ``mask``: numpy [H, W] (or [H, W, 1]) bool or integer (non-zero = object), selecting at least
   one pixel, also after resizing to the model resolution.
 * ``bbox``: (x0, y0, x1, y1) in pixels of the image, x0 < x1, y0 < y1, inside [0, W] x [0, H].
+  In object mode the ``Tracker`` passes the region it predicted (``object_region``) for a frame
+  pushed without either, so only a frame with no region known yet lacks one (``MaskError``).
   Alone it acts as a rectangular mask; with a mask, the mask selects the object and the box only
   sets the crop region.
 
@@ -226,7 +228,10 @@ class FramePreparer:
             object_mask = box_mask(box, size)
         object_mode = self.config.mode is TrackingMode.OBJECT
         if object_mode and object_mask is None:
-            raise MaskError("object mode needs a mask or a bbox with every frame")
+            raise MaskError(
+                "object mode needs a mask or a bbox with the first frame (the tracker predicts "
+                "the object's region in the frames after it)"
+            )
 
         out_size = self.model_size(size, pipeline)
         if map_resolution is not None and out_size != tuple(map_resolution):

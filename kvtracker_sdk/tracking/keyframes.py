@@ -1,9 +1,14 @@
 """Keyframe policies: when a tracked frame becomes a keyframe, and which keyframe leaves a full map.
 
 * Scene mode (KV-Tracker paper): a keyframe every ``interval_frames`` frames.
-* Object mode (KV-Tracker paper): the view direction from the object centre to the camera, as
+* Object mode, ``view_direction`` rule (the default): a new keyframe when the angle between the
+  unit directions from the object centre to the camera and to *every* keyframe exceeds
+  ``view_angle_deg`` — a cone of τ around each keyframe's view, the same on any ring and near the
+  poles.
+* Object mode, ``azimuth_elevation`` rule (KV-Tracker paper as written): the view direction as
   azimuth/elevation in the world frame; a new keyframe when min |Δazimuth| or min |Δelevation|
-  over all keyframes exceeds ``view_angle_deg``.
+  over all keyframes exceeds ``view_angle_deg``, each axis judged alone (so a ring 30° above a
+  full ring adds nothing, and an orbit near the pole adds one per τ of azimuth).
 * Budget (design doc): at most ``max_keyframes`` keyframes and ``max_cache_bytes`` of K/V; when a
   new keyframe would exceed it, evict by policy — never keyframe 0, the anchor of the world frame.
 
@@ -19,14 +24,18 @@ from collections.abc import Sequence
 import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import Keyframe
-from kvtracker_sdk.config import BudgetConfig, EvictionPolicy
+from kvtracker_sdk.config import BudgetConfig, EvictionPolicy, ObjectKeyframeRule
+from kvtracker_sdk.tracking.object_model import POINT_STEP, fused_object_points
 
 __all__ = [
     "KeyframeBudget",
     "angle_difference_deg",
     "interval_elapsed",
+    "novel_object_view",
     "novel_view",
+    "novel_view_direction",
     "object_centre",
+    "view_direction",
     "view_angles_deg",
 ]
 
@@ -36,12 +45,13 @@ def interval_elapsed(frame_index: int, last_keyframe_frame: int, interval_frames
     return frame_index - last_keyframe_frame >= interval_frames
 
 
-def object_centre(keyframes: Sequence[Keyframe], *, step: int = 4) -> np.ndarray:
-    """Mean world point [3] of the masked pixels of all keyframes (all pixels where unmasked).
-
-    ``step`` keeps every step-th selected point (the mean of a dense point map barely changes).
-    Input validation guarantees non-empty masks, so some point always exists.
-    """
+def object_centre(keyframes: Sequence[Keyframe], *, step: int = POINT_STEP) -> np.ndarray:
+    """Mean world point [3] of the fused object points (``object_model.fused_object_points``:
+    masked, confident, foreground pixels of every ``step``-th row and column of all keyframes);
+    the mean of all masked points (all pixels where unmasked) if none is left."""
+    fused = fused_object_points(keyframes, step=step)
+    if len(fused):
+        return fused.mean(axis=0)
     chunks = []
     for kf in keyframes:
         points = kf.world_points()
@@ -69,20 +79,57 @@ def angle_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.nda
     return np.abs(diff - 180.0)
 
 
+def view_direction(T_world_cam: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Unit vector [3] from ``centre`` to the camera centre (world frame; [0, 0, 0] if equal)."""
+    d = np.asarray(T_world_cam, dtype=np.float64)[..., :3, 3] - np.asarray(centre, dtype=np.float64)
+    norm = np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.where(norm > 0, d / np.where(norm > 0, norm, 1.0), 0.0)
+
+
+def novel_view_direction(
+    T_world_cam: np.ndarray,
+    keyframe_poses: np.ndarray,
+    centre: np.ndarray,
+    threshold_deg: float,
+) -> bool:
+    """View-direction rule: the angle between the unit directions from ``centre`` to the camera
+    and to every keyframe (``keyframe_poses`` [N, 4, 4] T_world_cam, N >= 1) exceeds the
+    threshold."""
+    current = view_direction(T_world_cam, centre)
+    others = view_direction(np.asarray(keyframe_poses, dtype=np.float64), centre)  # [N, 3]
+    best_cos = float(np.clip(others @ current, -1.0, 1.0).max())
+    return best_cos < float(np.cos(np.radians(threshold_deg)))
+
+
+def novel_object_view(
+    rule: ObjectKeyframeRule,
+    T_world_cam: np.ndarray,
+    keyframe_poses: np.ndarray,
+    centre: np.ndarray,
+    threshold_deg: float,
+) -> bool:
+    """Whether the object keyframe ``rule`` wants a keyframe at ``T_world_cam``."""
+    if rule is ObjectKeyframeRule.VIEW_DIRECTION:
+        return novel_view_direction(T_world_cam, keyframe_poses, centre, threshold_deg)
+    return novel_view(T_world_cam, keyframe_poses, centre, threshold_deg)
+
+
 def novel_view(
     T_world_cam: np.ndarray,
     keyframe_poses: np.ndarray,
     centre: np.ndarray,
     threshold_deg: float,
 ) -> bool:
-    """Object rule: min |Δazimuth| or min |Δelevation| over keyframes exceeds the threshold.
+    """Paper's object rule: min |Δazimuth| or min |Δelevation| over keyframes exceeds the threshold.
 
     ``keyframe_poses`` is [N, 4, 4] T_world_cam (N >= 1).
     """
     azimuth, elevation = view_angles_deg(T_world_cam, centre)
-    angles = np.array([view_angles_deg(T, centre) for T in keyframe_poses])  # [N, 2]
-    min_d_azimuth = float(angle_difference_deg(azimuth, angles[:, 0]).min())
-    min_d_elevation = float(angle_difference_deg(elevation, angles[:, 1]).min())
+    d = np.asarray(keyframe_poses, dtype=np.float64)[:, :3, 3] - np.asarray(centre, dtype=np.float64)
+    azimuths = np.degrees(np.arctan2(d[:, 0], d[:, 2]))  # as view_angles_deg, for all at once
+    elevations = np.degrees(np.arctan2(-d[:, 1], np.hypot(d[:, 0], d[:, 2])))
+    min_d_azimuth = float(angle_difference_deg(azimuth, azimuths).min())
+    min_d_elevation = float(angle_difference_deg(elevation, elevations).min())
     return min_d_azimuth > threshold_deg or min_d_elevation > threshold_deg
 
 

@@ -47,6 +47,7 @@ from kvtracker_sdk.tracking.frame_input import PreparedFrame
 from kvtracker_sdk.tracking.map_builder import KeyframeCandidate, RebuildOutcome, RebuildRequest
 from kvtracker_sdk.tracking.map_insertion import rebuild_or_insert
 from kvtracker_sdk.tracking.mapper import Mapper
+from kvtracker_sdk.tracking.object_model import ObjectModelCache
 from kvtracker_sdk.types import MapStatus
 
 __all__ = ["MapKeeper"]
@@ -74,6 +75,7 @@ class MapKeeper:
         self._mapper: Mapper[RebuildOutcome] = Mapper(asynchronous=config.threading.async_mapping)
         self._budget = policy.KeyframeBudget(config.keyframing.budget)
         self.map: KeyframeMap | None = None
+        self.objects = ObjectModelCache()  # the object of the current map (object mode)
         self.generation = 0  # of the latest installed map; 0 before the first
         self._next_keyframe_id = 0
         self._deferred_replaced = 0  # waiting candidates replaced by newer ones (overload)
@@ -215,10 +217,14 @@ class MapKeeper:
                 index, self._last_proposed_frame, keyframing.interval_frames
             )
         if self._centre is None or self._centre[0] != kf_map.generation:
-            self._centre = (kf_map.generation, policy.object_centre(kf_map.keyframes))
+            model = self.objects.get(kf_map)  # shared with the region propagation
+            centre = model.centre if model is not None else policy.object_centre(kf_map.keyframes)
+            self._centre = (kf_map.generation, centre)
         proposed = [p.T_world_cam for p in self._proposals()]
         poses = np.concatenate([kf_map.poses(), np.asarray(proposed).reshape(-1, 4, 4)])
-        return policy.novel_view(T_world_cam, poses, self._centre[1], keyframing.view_angle_deg)
+        return policy.novel_object_view(
+            keyframing.object_rule, T_world_cam, poses, self._centre[1], keyframing.view_angle_deg
+        )
 
     def _proposals(self) -> tuple[_Proposal, ...]:
         return self._in_flight + ((self._waiting,) if self._waiting is not None else ())

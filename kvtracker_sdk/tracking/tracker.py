@@ -48,10 +48,14 @@ from kvtracker_sdk.tracking.frame_input import FramePreparer
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
+from kvtracker_sdk.tracking.object_region import RegionPropagator
 from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
+from kvtracker_sdk.tracking.segmenter import Segmenter
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,
+    ObjectFrame,
+    ObjectRegion,
     Pose,
     StateReason,
     TrackedPose,
@@ -78,12 +82,13 @@ class Tracker(EventSource):
     Callbacks (``on_*``, see ``events.EventSource``) run on the thread that called the method
     causing them (see ``events``). ``camera``: the input images' intrinsics for the session
     (``set_camera`` changes them; ``push_frame(camera=...)`` overrides them for one frame);
-    distorted frames are undistorted.
+    distorted frames are undistorted. ``segmenter``: object mode's ``Segmenter`` (optional; see
+    ``set_segmenter``).
     """
 
     def __init__(
         self, config: TrackerConfig | Mapping[str, Any] | None, backend: Backend, *,
-        camera: Camera | None = None,
+        camera: Camera | None = None, segmenter: Segmenter | None = None,
     ) -> None:
         cfg = config if isinstance(config, TrackerConfig) else TrackerConfig.from_dict(config or {})
         self._preparer = FramePreparer(
@@ -110,6 +115,10 @@ class Tracker(EventSource):
         self._last_intrinsics: tuple[Camera, IntrinsicsSource] | None = None
         self._intake: LiveIntake | None = None  # made by the first submit()
         self._intake_lock = threading.Lock()  # never the tracker's lock: submit must not wait
+        self._object_mode = cfg.mode is TrackingMode.OBJECT
+        self._regions = RegionPropagator(margin=cfg.object.crop_margin_px,
+                                         models=self._keeper.objects)
+        self._segmenter = _checked_segmenter(segmenter)
 
     @classmethod
     def from_pretrained(cls, weights: str | Path, **config: Any) -> Tracker:
@@ -190,6 +199,28 @@ class Tracker(EventSource):
         """The session's given intrinsics (None: predicted or estimated per frame)."""
         return self._camera
 
+    @property
+    def object_frame(self) -> ObjectFrame | None:
+        """Object mode: the object's frame and extent in the world frame (``ObjectFrame``: origin
+        at the object centre, axes of keyframe 0, an oriented box of the fused object points);
+        None in scene mode and before the map holds object points."""
+        if not self._object_mode:
+            return None
+        with self._call():
+            return self._regions.object_frame(self._keeper.map)
+
+    @property
+    def object_region(self) -> ObjectRegion | None:
+        """Object mode: the region of the last frame (``FrameResult.region``), None before one."""
+        return self._regions.last
+
+    def set_segmenter(self, segmenter: Segmenter | None) -> None:
+        """Object mode: ask ``segmenter`` for the object's mask in every frame pushed without a
+        mask or box, prompting it with the predicted region (None: use the prediction itself)."""
+        checked = _checked_segmenter(segmenter)
+        with self._call():
+            self._segmenter = checked
+
     def set_camera(self, camera: Camera | None) -> None:
         """Give (or with None, forget) the input images' intrinsics from the next frame on."""
         checked = _checked_camera(camera)
@@ -214,6 +245,7 @@ class Tracker(EventSource):
         with self._call():
             self._loop.drop_map(_R.RESET)
             self._input_size = None
+            self._regions.reset()
             if self.state is not _S.INIT:
                 self._loop.change(_S.INIT, _R.RESET, None)
 
@@ -226,6 +258,7 @@ class Tracker(EventSource):
                     f"map cache layout {kf_map.cache.layout} != backend {self.backend.info.layout}"
                 )
             self._input_size = None
+            self._regions.reset()
             self._loop.install_loaded(kf_map, rebuild=rebuild)
             if not self._keeper.extendable:
                 _log.warning(
@@ -361,8 +394,10 @@ class Tracker(EventSource):
     ) -> FrameResult:
         """Track one RGB frame [H, W, 3] (uint8, or float in [0, 1]).
 
-        ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object (required in
-        object mode). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
+        ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object in object mode:
+        required with the first frame, optional afterwards (a frame without one is tracked with
+        the region predicted from the map, or the ``Segmenter``'s mask; the result's ``region``
+        and ``T_cam_object`` say where the object is, ``tracking/object_region.py``). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
         backend failed on this frame (``error``); ``pose_valid`` is False while relocalising or for
         a low-confidence frame. ``keyframe_id`` is set when the frame became a keyframe in this
         call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
@@ -374,6 +409,13 @@ class Tracker(EventSource):
         start = time.perf_counter()
         with self._call():
             kf_map = self._keeper.map
+            index = self._frames
+            given = mask is not None or bbox is not None
+            segmented = None
+            if self._object_mode and not given:
+                mask, segmented = self._regions.input_mask(
+                    image, index, kf_map, self._segmenter, min_side=self._preparer.patch_size)
+            segment_ms = _ms(start)
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
                 session_input_size=self._input_size,
@@ -381,8 +423,9 @@ class Tracker(EventSource):
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
                 camera=_checked_camera(camera) if camera is not None else self._camera,
             )
-            timings = {"preprocess": _ms(start)}
-            index = self._frames
+            timings = {"preprocess": _ms(start) - segment_ms}
+            if segmented is not None:
+                timings["segment"] = segment_ms
             self._loop.predicted_K = None
             step = self._loop.step(frame, index, timings)
             intrinsics, source = self._intrinsics.resolve(
@@ -390,6 +433,16 @@ class Tracker(EventSource):
             )
             if intrinsics is not None and source is not None:
                 self._last_intrinsics = (intrinsics, source)
+            region, T_cam_object = None, None
+            if self._object_mode:
+                region_start = time.perf_counter()
+                supplied = self._regions.supplied(frame.input_size, index, mask if given else None,
+                                                  bbox if given else None, segmented)
+                pose = step.pose.T_world_cam if step.valid and step.pose is not None else None
+                region, T_cam_object = self._regions.observe(
+                    index, self._keeper.map, T_world_cam=pose, camera=intrinsics,
+                    supplied=supplied)
+                timings["region"] = _ms(region_start)
             # counted once the frame went through: an unexpected error leaves both as they were
             self._frames, self._input_size = index + 1, frame.input_size
             timings["total"] = _ms(start)
@@ -397,6 +450,7 @@ class Tracker(EventSource):
                 index, frame.timestamp, self.state, self.reason, step.pose, step.valid,
                 step.confidence, step.keyframe_id, self._loop.snapshot.map_generation, timings,
                 {"rebuilding": self._keeper.rebuilding}, step.error, intrinsics, source,
+                region, T_cam_object,
             )
         _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
                    confidence=step.confidence,
@@ -455,6 +509,12 @@ def _check_cache_dtype(config: TrackerConfig, backend: BackendInfo) -> None:
             f"cache_dtype {config.cache_dtype!r} needs the PyTorch backend; the {backend.backend} "
             f"backend reads dense caches only (cache_dtype 'backend')"
         )
+
+
+def _checked_segmenter(segmenter: Any) -> Segmenter | None:
+    if segmenter is not None and not isinstance(segmenter, Segmenter):
+        raise InputError(f"segmenter must have a segment(image, prompt) method, got {segmenter!r}")
+    return segmenter
 
 
 def _checked_camera(camera: Any) -> Camera | None:
