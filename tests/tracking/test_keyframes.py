@@ -23,11 +23,17 @@ UP = np.array([0.0, -1.0, 0.0])  # world = keyframe 0's camera frame (OpenCV): u
 
 
 def _keyframe(
-    keyframe_id: int, pose: np.ndarray, *, depth: float = 2.0, mask: np.ndarray | None = None
+    keyframe_id: int, pose: np.ndarray, *, depth: float = 2.0, mask: np.ndarray | None = None,
+    focal: float | None = None,
 ) -> Keyframe:
+    """An 8x8 keyframe at constant ``depth``; with ``focal``, points on a pinhole's rays (centre
+    at pixel 3.5), else all on the optical axis."""
     size = (8, 8)
     points = np.zeros((*size, 3), dtype=np.float32)
     points[..., 2] = depth
+    if focal is not None:
+        offsets = (np.arange(8) - 3.5) / focal * depth
+        points[..., 0], points[..., 1] = offsets[None, :], offsets[:, None]
     return Keyframe(
         keyframe_id=keyframe_id,
         frame_index=10 * keyframe_id,
@@ -78,15 +84,19 @@ def test_novel_view_uses_min_over_keyframes_and_the_threshold() -> None:
     assert novel_view(_camera_at(-20, 0), keyframes, centre, 10.0)
 
 
-def test_object_centre_is_the_mean_of_masked_world_points() -> None:
+def test_object_centre_is_the_mean_of_the_fused_object_points() -> None:
     mask = np.zeros((8, 8), dtype=bool)
     mask[2:4, 2:4] = True
-    first = _keyframe(0, np.eye(4), depth=2.0, mask=mask)
-    moved = np.eye(4)
-    moved[:3, 3] = [1.0, 0.0, 0.0]
-    second = _keyframe(1, moved, depth=4.0, mask=mask)
-    # local points have x = y = 0, so world points are (0, 0, 2) and (1, 0, 4)
-    np.testing.assert_allclose(object_centre([first, second], step=1), [0.5, 0.0, 3.0], atol=1e-9)
+    first = _keyframe(0, np.eye(4), depth=2.0, mask=mask, focal=8.0)
+    moved, far = np.eye(4), np.eye(4)
+    moved[:3, 3] = [0.1, 0.0, 0.0]
+    far[:3, 3] = [5.0, 0.0, 0.0]
+    second = _keyframe(1, moved, depth=2.0, mask=mask, focal=8.0)
+    elsewhere = _keyframe(2, far, depth=2.0, mask=mask, focal=8.0)
+    # pixels 2, 3 at focal 8 and depth 2: x, y in {-0.375, -0.125}; the second keyframe's x is
+    # 0.1 further; the third's points lie far outside keyframe 0's object (the anchor ball)
+    centre = object_centre([first, second, elsewhere], step=1)
+    np.testing.assert_allclose(centre, [-0.2, -0.25, 2.0], atol=1e-9)
 
 
 def test_budget_capacity_from_count_and_bytes() -> None:
