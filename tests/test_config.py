@@ -11,6 +11,7 @@ from kvtracker_sdk.config import (
     EvictionPolicy,
     KeyframingConfig,
     ObjectConfig,
+    ObjectKeyframeRule,
     ObjectPreprocessing,
     RejectionConfig,
     RelocalizationConfig,
@@ -36,11 +37,34 @@ def test_defaults_are_the_paper_and_design_values() -> None:
     assert config.debug.gauge_alignment is True
 
 
+def test_object_mode_sizes_the_budget_for_an_object_unless_told() -> None:
+    assert TrackerConfig().keyframing.budget.max_keyframes == 32
+    obj = TrackerConfig(mode="object")
+    assert obj.keyframing.budget.max_keyframes == 60  # paper: 50-60 keyframes cover an object
+    assert obj.keyframing.object_rule is ObjectKeyframeRule.VIEW_DIRECTION
+    assert TrackerConfig(mode=TrackingMode.OBJECT, keyframing={"view_angle_deg": 15.0}
+                         ).keyframing.budget.max_keyframes == 60
+    told = {"keyframing": {"budget": {"max_keyframes": 12}}}
+    assert TrackerConfig(mode="object", **told).keyframing.budget.max_keyframes == 12
+    section = KeyframingConfig(budget=BudgetConfig(max_keyframes=40))
+    assert TrackerConfig(mode="object", keyframing=section).keyframing.budget.max_keyframes == 40
+    assert TrackerConfig(mode="object", keyframing=KeyframingConfig()
+                         ).keyframing.budget.max_keyframes == 60
+    # switching modes takes the new mode's default, a hand-set budget stays
+    assert TrackerConfig().updated(mode="object").keyframing.budget.max_keyframes == 60
+    assert obj.updated(mode="scene").keyframing.budget.max_keyframes == 32
+    assert TrackerConfig(**told).updated(mode="object").keyframing.budget.max_keyframes == 12
+    assert TrackerConfig.from_dict(obj.to_dict()) == obj
+    paper = TrackerConfig(mode="object", keyframing={"object_rule": "azimuth_elevation"})
+    assert paper.keyframing.object_rule is ObjectKeyframeRule.AZIMUTH_ELEVATION
+
+
 @pytest.mark.parametrize(
     ("section", "field", "source"),
     [
         (KeyframingConfig, "interval_frames", "KV-Tracker paper"),
         (KeyframingConfig, "view_angle_deg", "KV-Tracker paper"),
+        (BudgetConfig, "max_keyframes", "KV-Tracker paper"),
         (RejectionConfig, "ratio", "KV-Tracker paper"),
         (ObjectConfig, "crop_margin_px", "KV-Tracker paper"),
         (TrackerConfig, "resolution", "KV-Tracker paper"),
@@ -73,6 +97,7 @@ def test_paper_defaults_name_their_source(section: type, field: str, source: str
         {"heads": "everything"},
         {"unknown_section": {}},
         {"keyframing": {"interval": 50}},  # misspelt key: an error, never silently ignored
+        {"keyframing": {"object_rule": "azimuth"}},
     ],
 )
 def test_invalid_values_raise_config_error(kwargs: dict) -> None:

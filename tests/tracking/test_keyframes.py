@@ -9,12 +9,14 @@ from hypothesis import strategies as st
 
 from kvtracker_sdk.backends.simulated_scene import look_at
 from kvtracker_sdk.cache.keyframe_map import Keyframe
-from kvtracker_sdk.config import BudgetConfig
+from kvtracker_sdk.config import BudgetConfig, ObjectKeyframeRule
 from kvtracker_sdk.tracking.keyframes import (
     KeyframeBudget,
     angle_difference_deg,
     interval_elapsed,
+    novel_object_view,
     novel_view,
+    novel_view_direction,
     object_centre,
     view_angles_deg,
 )
@@ -82,6 +84,24 @@ def test_novel_view_uses_min_over_keyframes_and_the_threshold() -> None:
     assert novel_view(_camera_at(2, 15), keyframes, centre, 10.0)  # elevation alone suffices
     assert not novel_view(_camera_at(35, 9), keyframes, centre, 10.0)  # 5 deg from keyframe 2
     assert novel_view(_camera_at(-20, 0), keyframes, centre, 10.0)
+
+
+def test_view_direction_rule_measures_the_angle_between_views() -> None:
+    keyframes = np.stack([_camera_at(0, 0), _camera_at(40, 0)])
+    centre = np.zeros(3)
+    assert not novel_view_direction(_camera_at(5, 5), keyframes, centre, 10.0)  # 7.1 deg away
+    assert novel_view_direction(_camera_at(0, 12), keyframes, centre, 10.0)
+    assert novel_view_direction(_camera_at(20, 0), keyframes, centre, 10.0)
+    # near the pole azimuth means little: 60 deg of azimuth at 85 deg of elevation is 5 deg away
+    polar = np.stack([_camera_at(0, 85)])
+    assert not novel_view_direction(_camera_at(60, 85), polar, centre, 10.0)
+    assert novel_view(_camera_at(60, 85), polar, centre, 10.0)  # the paper's rule: 60 > 10
+    # a ring above a full ring: new views for the view-direction rule, none for the paper's
+    ring = np.stack([_camera_at(a, 0) for a in range(-180, 180, 10)])
+    assert novel_object_view(ObjectKeyframeRule.VIEW_DIRECTION, _camera_at(5, 30), ring, centre, 10)
+    assert not novel_object_view(
+        ObjectKeyframeRule.AZIMUTH_ELEVATION, _camera_at(5, 30), np.concatenate(
+            [ring, _camera_at(0, 30)[None]]), centre, 10)
 
 
 def test_object_centre_is_the_mean_of_the_fused_object_points() -> None:
