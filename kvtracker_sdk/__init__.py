@@ -44,13 +44,17 @@ from kvtracker_sdk.errors import (
     TrajectoryError,
     WeightsNotFoundError,
 )
+from kvtracker_sdk.geometry.boxes import OrientedBox
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.types import (
     FrameResult,
     HeadSet,
     MapStatus,
+    ObjectFrame,
+    ObjectRegion,
     Pose,
+    RegionSource,
     StateReason,
     TrackedPose,
     TrackerSnapshot,
@@ -78,6 +82,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.scale.runner import run_many
     from kvtracker_sdk.scale.service import TrackerHost
     from kvtracker_sdk.tracking.live_intake import LiveStats
+    from kvtracker_sdk.tracking.segmenter import Segmenter
     from kvtracker_sdk.tracking.tracker import Tracker
     from kvtracker_sdk.viz.live_viewer import Viewer
 
@@ -98,6 +103,7 @@ _LAZY: dict[str, str] = {
     "Keyframe": "kvtracker_sdk.cache.keyframe_map",
     "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
     "LiveStats": "kvtracker_sdk.tracking.live_intake",
+    "Segmenter": "kvtracker_sdk.tracking.segmenter",
     "LoadedMap": "kvtracker_sdk.io.map_file",
     "read_camera_file": "kvtracker_sdk.io.camera_files",
     "MapInfo": "kvtracker_sdk.io.map_format",
@@ -161,14 +167,19 @@ __all__ = [
     "MissingDependencyError",
     "ModelError",
     "NonFiniteImageError",
+    "ObjectFrame",
+    "ObjectRegion",
     "OnnxBackend",
     "OpenVinoBackend",
+    "OrientedBox",
     "OutputError",
     "PinholeIntrinsics",
     "Pose",
     "Reconstruction",
+    "RegionSource",
     "ResolutionChangedError",
     "Ros2BagWriter",
+    "Segmenter",
     "Sim3",
     "SimulatedBackend",
     "SourceError",
