@@ -1,5 +1,9 @@
 """``kvtracker demo``: the whole pipeline offline, on a fresh machine, with nothing downloaded.
 
+``--mode object`` tracks the sphere the camera walks around, given its box on the first frame
+only: the tracker predicts the object's region in every next frame and ``object.json`` holds
+the regions, ``T_cam_object`` per frame and the object's frame and extent.
+
 The simulated backend stands in for the network: it renders frames of a known camera path and
 answers with that path's poses through noise and a fresh random Sim(3) per mapping pass (as Pi3
 answers in each pass's own frame and scale), and drops its confidence over a "camera covered"
@@ -10,7 +14,7 @@ alignment, the writers and the evaluation. Every output says SIMULATED.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -24,6 +28,11 @@ from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["SIMULATED_NOTICE", "demo", "register"]
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from kvtracker_sdk.backends.simulated import SimulatedBackend
 
 _log = get_logger(__name__)
 
@@ -70,6 +79,9 @@ def demo(
     noise_deg: Annotated[float, typer.Option(help="Rotation noise (degrees).")] = 0.3,
     seed: Annotated[int, typer.Option(help="Seed of the path and the noise.")] = 0,
     resolution: Annotated[int, typer.Option(help="Model input side d (224, 308, 518).")] = 308,
+    mode: Annotated[str, typer.Option(
+        help="scene: track the camera; object: track the sphere from its box on the first frame "
+        "only (the tracker predicts its region in every next frame).")] = "scene",
     keyframe_interval: Annotated[int, typer.Option(help="A keyframe every N frames.")] = 50,
     async_mapping: Annotated[bool, typer.Option(
         "--async-mapping", help="Rebuild the map on a worker thread.")] = False,
@@ -94,6 +106,8 @@ def demo(
 
     state: CliState = ctx.find_root().obj
     image_size = _parse_size(size)
+    if mode not in ("scene", "object"):
+        raise ConfigError(f"--mode {mode!r}: expected scene or object")
     if frames is not None and frames < 1:
         raise ConfigError(f"--frames must be >= 1, got {frames}")
     check_outputs(OutputOptions(out, rerun=rerun, save_map=save_map))  # before the first frame
@@ -109,6 +123,7 @@ def demo(
         loss_segments=[segment] if segment else [], seed=seed,
     )
     config = TrackerConfig.from_dict({
+        "mode": mode,
         "resolution": resolution,
         "keyframing": {"interval_frames": keyframe_interval},
         "threading": {"async_mapping": async_mapping},
@@ -121,7 +136,7 @@ def demo(
         "demo", str(gt) if gt else "built-in hand-held orbit", simulated=True,
         details={"notice": SIMULATED_NOTICE, "frames": len(truth), "size": list(image_size),
                  "loss_segment": list(segment) if segment else None, "seed": seed,
-                 "noise_cm": noise_cm, "noise_deg": noise_deg},
+                 "noise_cm": noise_cm, "noise_deg": noise_deg, "mode": mode},
     )
     options = OutputOptions(
         out, rerun=rerun, voxel_size=voxel_size,
@@ -129,12 +144,27 @@ def demo(
         save_map=save_map,
     )
     rendered = (
-        InputFrame(f.image, f.timestamp) for f in backend.frames(image_size, textured=True)
+        InputFrame(f.image, f.timestamp, bbox=_first_box(backend, f.index, f.T_world_cam,
+                                                         image_size, mode))
+        for f in backend.frames(image_size, textured=True)
     )
     with Tracker(config, backend) as tracker, \
             live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as live:
         run_session(state, tracker, rendered, total=len(truth), description=description,
                     options=live.around(options), announce_states=True)
+
+
+def _first_box(
+    backend: SimulatedBackend, index: int, T_world_cam: np.ndarray, size: tuple[int, int],
+    mode: str,
+) -> tuple[float, float, float, float] | None:
+    """Object mode: the sphere's true silhouette box on frame 0 (a user's tap), nothing after."""
+    if mode != "object" or index != 0:
+        return None
+    box = backend.scene.object_box(T_world_cam, size)
+    if box is None:
+        raise ConfigError("the object is not in view on the first frame of the path")
+    return box
 
 
 def register(app: typer.Typer) -> None:

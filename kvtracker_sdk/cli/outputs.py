@@ -7,6 +7,7 @@
 | ``points.ply`` | the map's fused point cloud, confidence-filtered and voxel-thinned (binary PLY) |
 | ``trajectory.png`` | the trajectory on three planes (and against the ground truth, with errors) |
 | ``groundtruth.txt`` | (demo) the simulated camera's true trajectory, TUM |
+| ``object.json`` | (object mode) the object's frame and extent, each frame's region and ``T_cam_object`` |
 | ``evaluation.json`` | (when ground truth is known) ATE / RPE / cm-degree report |
 | ``run.json`` | what ran: command, input, config, versions, backend fingerprint, timings, states |
 
@@ -30,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from kvtracker_sdk._version import __version__
+from kvtracker_sdk.cli.object_outputs import object_document
 from kvtracker_sdk.cli.run_loop import RunRecord
 from kvtracker_sdk.errors import EvaluationError, MissingDependencyError
 from kvtracker_sdk.io.atomic import atomic_write
@@ -49,7 +51,7 @@ _VERSIONED = ("numpy", "torch", "onnxruntime", "rerun-sdk", "opencv-python-headl
 _AUTO_VOXEL_FRACTION = 0.005  # of keyframe 0's median depth: ~1.5 mm at 30 cm, 1 cm at 2 m
 # the files a run writes into --out by these names (others in the folder are never touched)
 _OUR_FILES = frozenset({"trajectory.txt", "keyframes.json", "points.ply", "trajectory.png",
-                        "groundtruth.txt", "evaluation.json"})
+                        "groundtruth.txt", "evaluation.json", "object.json"})
 
 
 @dataclass(frozen=True)
@@ -111,6 +113,9 @@ def write_outputs(
     keyframe_map = tracker.keyframe_map
     _write_json(files["keyframes.json"], _keyframes_document(keyframe_map))
     num_points = _write_points(files["points.ply"], keyframe_map, min_confidence, voxel_size)
+    if tracker.config.mode.value == "object":
+        files["object.json"] = out_dir / "object.json"
+        _write_json(files["object.json"], object_document(tracker, record.results))
     if ground_truth is not None and write_ground_truth:
         files["groundtruth.txt"] = out_dir / "groundtruth.txt"
         write_tum(files["groundtruth.txt"], ground_truth)

@@ -104,14 +104,14 @@ def fused_object_points(keyframes: Sequence[Keyframe], *, step: int = POINT_STEP
 
 def voxel_subsample(points: np.ndarray, limit: int) -> np.ndarray:
     """At most ``limit`` of ``points`` [N, 3], one per cell of the finest cubic grid that leaves
-    no more (cells grow by 1.5x from 1/64 of the largest extent). Uniform in space, not over the
+    no more (cells grow by 1.5x from 1/32 of the largest extent). Uniform in space, not over the
     pixels the points came from: a silhouette's rim, seen at a grazing angle by the keyframes, has
     few pixel samples and must keep them (an even subsample of the samples thins it out, and the
     predicted box shrinks on that side)."""
     if len(points) <= limit:
         return points.copy()
     low = points.min(axis=0)
-    cell = max(float(np.ptp(points, axis=0).max()) / 64.0, 1e-12)
+    cell = max(float(np.ptp(points, axis=0).max()) / 32.0, 1e-12)
     while True:
         cells = np.floor((points - low) / cell).astype(np.int64)  # [N, 3], each < 2**20
         keys = (cells[:, 0] << 40) | (cells[:, 1] << 20) | cells[:, 2]

@@ -17,7 +17,7 @@ network or estimated from its points):
 
 The region's mask is the projected points splatted on a grid whose cell matches their spacing,
 closed and hole-filled (a silhouette, not a depth test: points on the far side of the object
-fall inside it anyway); its box holds all but 0.2 % of the projected points on each side.
+fall inside it anyway); its box holds every projected point (clipped to the image).
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from kvtracker_sdk.types import ObjectFrame, ObjectRegion, RegionSource
 __all__ = ["RegionPropagator", "grown_mask", "project_region", "region_of_input", "splat_mask"]
 
 _MIN_POINTS = 8  # fewer projected points than this: the object is out of view
-_TRIM = 0.0  # fraction of projected points a box may leave out on each side (stray points)
 _MAX_CELL = 16
 _GROWTH = 0.15  # a predicted mask grows by this fraction of its box's longer side to track with
 
@@ -111,8 +110,10 @@ def project_region(
     )
     if int(visible.sum()) < _MIN_POINTS:
         return None
-    low = np.quantile(uv, _TRIM, axis=0) + 0.5  # pixel centres -> box coordinates
-    high = np.quantile(uv, 1.0 - _TRIM, axis=0) + 0.5
+    # all points count: stray ones were dropped by the foreground rule and the anchor ball, and
+    # the rim of what the keyframes saw is thinly sampled (a trimmed box shrinks on that side)
+    low = uv.min(axis=0) + 0.5  # pixel centres -> box coordinates
+    high = uv.max(axis=0) + 0.5
     box = (max(0.0, float(low[0])), max(0.0, float(low[1])),
            min(float(width), float(high[0])), min(float(height), float(high[1])))
     if not (box[0] < box[2] and box[1] < box[3]):

@@ -117,3 +117,22 @@ def test_demo_over_a_real_tum_ground_truth(tmp_path: Path) -> None:
     assert evaluated.exit_code == 0, evaluated.output
     assert "ATE  RMSE" in evaluated.stdout
     assert (tmp_path / "trajectory_eval.png").is_file()  # the default plot goes beside EST
+
+
+def test_object_demo_starts_from_one_box(tmp_path: Path) -> None:
+    result = invoke("demo", "--mode", "object", "--out", tmp_path, "--frames", "80", "--loss",
+                    "40:55", "--size", "90x120", "--resolution", "224")
+    assert result.exit_code == 0, result.output
+    document = json.loads((tmp_path / "object.json").read_text())
+    frames = document["frames"]
+    assert len(frames) == 80 and frames[0]["source"] == "given"
+    sources = [f["source"] for f in frames]
+    # predicted while tracked; held (T_cam_object null) while the camera is covered (40-55)
+    assert sources[1:40] == ["predicted"] * 39 and set(sources[40:55]) == {"held"}
+    assert all(f["T_cam_object"] is None for f in frames[40:55])
+    assert sources[-1] == "predicted" and frames[-1]["T_cam_object"] is not None
+    anchor = document["object_frame"]
+    assert anchor is not None and len(anchor["extent"]["half_extents"]) == 3
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["details"]["mode"] == "object" and run["config"]["mode"] == "object"
+    assert run["outputs"]["object.json"] == str(tmp_path / "object.json")

@@ -1,0 +1,50 @@
+"""``object.json``: what an object-mode run knows about the object, for anchoring content later.
+
+* ``object_frame``: ``T_world_object`` (origin at the object centre, axes of keyframe 0) and the
+  extent (an oriented box of the fused object points: ``T_object_box``, ``half_extents``), in the
+  map's units (monocular: no metric scale);
+* ``frames``: per frame, the region (``source``: given / segmented / predicted / held; ``box`` and
+  ``context_box`` in pixels, x1/y1 exclusive) and ``T_cam_object`` (null without a valid pose).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from kvtracker_sdk.types import FrameResult
+
+if TYPE_CHECKING:
+    from kvtracker_sdk.tracking.tracker import Tracker
+
+__all__ = ["object_document"]
+
+
+def _frame(result: FrameResult) -> dict[str, Any]:
+    region = result.region
+    return {
+        "frame_index": result.frame_index,
+        "timestamp": result.timestamp,
+        "source": None if region is None else region.source.value,
+        "box": None if region is None else list(region.box),
+        "context_box": None if region is None else list(region.context_box),
+        "T_cam_object": None if result.T_cam_object is None else result.T_cam_object.tolist(),
+    }
+
+
+def object_document(tracker: Tracker, results: list[FrameResult]) -> dict[str, Any]:
+    """The JSON document of ``object.json`` (see the module docstring)."""
+    frame = tracker.object_frame
+    anchor = None if frame is None else {
+        "T_world_object": frame.T_world_object.tolist(),
+        "extent": {"T_object_box": frame.extent.T_ref_box.tolist(),
+                   "half_extents": frame.extent.half_extents.tolist()},
+        "num_points": frame.num_points,
+        "map_generation": frame.map_generation,
+    }  # fmt: skip
+    return {
+        "convention": "T_world_object: origin at the object centre, axes of keyframe 0 (OpenCV); "
+                      "T_cam_object = inv(T_world_cam) @ T_world_object; boxes (x0, y0, x1, y1) "
+                      "in input pixels, x1/y1 exclusive",
+        "object_frame": anchor,
+        "frames": [_frame(r) for r in results],
+    }
