@@ -50,7 +50,8 @@ def real() -> list[str]:
 def test_every_example_is_a_script_with_a_main() -> None:
     names = sorted(p.stem for p in EXAMPLES.glob("*.py"))
     assert names == [
-        "camera_loop", "object_masks", "object_scan_and_relocalise", "ray_streams", "swap_backends"
+        "camera_loop", "object_from_one_box", "object_masks", "object_scan_and_relocalise",
+        "ray_streams", "swap_backends",
     ]
     for name in names:
         text = (EXAMPLES / f"{name}.py").read_text()
@@ -106,6 +107,15 @@ def test_object_masks(use_box: bool) -> None:
     assert 3 <= len(outcome.keyframe_frames) <= 5 and outcome.keyframe_frames[0] == 0
 
 
+@pytest.mark.parametrize("segmenter", [False, True])
+def test_object_from_one_box(segmenter: bool) -> None:
+    outcome = load("object_from_one_box").main(
+        ["--frames", "60"] + (["--segmenter"] if segmenter else []))
+    assert outcome.frames == 60 and outcome.sources["given"] == 1
+    assert outcome.sources["segmented" if segmenter else "predicted"] == 59
+    assert min(outcome.tracked_ious) >= 0.8 and outcome.anchor_in_view
+
+
 @pytest.fixture
 def pi3_export_in_cache(onnx_exports: Callable[[str], OnnxExport]) -> Path:
     """The session's golden Pi3 export, placed where ``export_onnx.onnx_backend(weights)`` looks
@@ -144,3 +154,5 @@ def test_examples_with_real_weights(
         cv2.imwrite(str(masks / f"{k}.png"), mask)
     masked = load("object_masks").main(["--frames", "3", *real, "--masks", str(masks)])
     assert masked.frames == 3
+    one_box = load("object_from_one_box").main(["--frames", "3", *real, "--box", "200,150,440,330"])
+    assert one_box.frames == 3 and one_box.sources["given"] == 1
