@@ -6,7 +6,8 @@ INPUT is opened by ``kvtracker_sdk.io.sources.open_source`` (video, image folder
 - ``--masks DIR``: one mask image per frame, matched by position in natural order (``2.png``
   before ``10.png``); non-zero pixels are the object. Their count must cover the frames used.
 - ``--bbox x0,y0,x1,y1``: one box in pixels of the input frames, used for every frame (an
-  object that stays roughly in place, e.g. on a turntable).
+  object that stays roughly in place, e.g. on a turntable), or with ``--bbox-once`` for the
+  first frame only (the tracker predicts the object's region after it).
 """
 
 from __future__ import annotations
@@ -97,8 +98,10 @@ def read_frames(
     *,
     masks: MaskFolder | None = None,
     bbox: tuple[float, float, float, float] | None = None,
+    bbox_first_only: bool = False,
 ) -> Iterator[InputFrame]:
-    """The selected frames of ``source``, each with its mask (by source position) or the box.
+    """The selected frames of ``source``, each with its mask (by source position) or the box
+    (``bbox_first_only``: the first selected frame only).
 
     Skipped frames are still decoded (sources read sequentially, as a video must), so a large
     ``stride`` saves tracking time, not decoding time. A frame or mask that cannot be read is
@@ -120,7 +123,8 @@ def read_frames(
         except MaskError as error:
             yield InputFrame(frame.image, frame.timestamp, error=error)
             continue
-        yield InputFrame(frame.image, frame.timestamp, mask=mask, bbox=bbox)
+        box = None if bbox_first_only and used > 1 else bbox
+        yield InputFrame(frame.image, frame.timestamp, mask=mask, bbox=box)
 
 
 class _Unreadable(NamedTuple):

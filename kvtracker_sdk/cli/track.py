@@ -49,12 +49,17 @@ def track(
     masks: Annotated[Path | None, typer.Option(
         help="Object mode: folder with one mask image per frame (natural order).")] = None,
     bbox: Annotated[str | None, typer.Option(
-        help="Object mode: x0,y0,x1,y1 box (pixels) used for every frame.")] = None,
+        help="Object mode: x0,y0,x1,y1 box (pixels) used for every frame (with --bbox-once: "
+        "the first frame only).")] = None,
+    bbox_once: Annotated[bool, typer.Option(
+        "--bbox-once", help="Object mode: give --bbox with the first frame only; the tracker "
+        "predicts the object's region in every frame after it (object.json).")] = False,
     keyframe_interval: Annotated[int | None, typer.Option(
         help="Scene mode: a keyframe every N frames. [default: 50]")] = None,
     view_angle: Annotated[float | None, typer.Option(
         help="Object mode: new keyframe past this view change (degrees). [default: 10]")] = None,
-    max_keyframes: Annotated[int | None, typer.Option(help="Keyframe budget. [default: 32]")] = None,
+    max_keyframes: Annotated[int | None, typer.Option(
+        help="Keyframe budget. [default: 32; object mode 60]")] = None,
     cache_dtype: Annotated[str | None, typer.Option(
         help="How the map's K/V are kept and saved: backend (its dtype), int8 or fp8 "
              "(quantised, ~1.94x smaller than bf16; torch backend). [default: backend]",
@@ -112,6 +117,8 @@ def track(
     base = _config_file(config_file)
     config = (base or TrackerConfig()).updated(**changes)  # invalid values fail before any load
     box = parse_bbox(bbox) if bbox is not None else None
+    if bbox_once and box is None:
+        raise ConfigError("--bbox-once needs --bbox x0,y0,x1,y1")
     selection = FrameSelection(start, stride, max_frames)
     source = open_source(input_path, fps=fps)
     if realtime:
@@ -133,7 +140,8 @@ def track(
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map),
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
-            frames = read_frames(source, selection, masks=mask_folder, bbox=box)
+            frames = read_frames(source, selection, masks=mask_folder, bbox=box,
+                                 bbox_first_only=bbox_once)
             with live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as outs:
                 run_session(state, tracker, frames, total=selection.count(len(source)),
                             description=description, options=outs.around(options),

@@ -16,6 +16,7 @@ import pytest
 
 from kvtracker_sdk.cli.failures import ExitCode
 from kvtracker_sdk.errors import BackendError
+from kvtracker_sdk.geometry.boxes import box_iou
 from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency
 
@@ -137,3 +138,18 @@ def test_fifos_are_refused_instead_of_read(tmp_path: Path, simulated_frames: Pat
     assert result.exit_code == ExitCode.INPUT, result.output
     assert "0.png is not a regular file" in result.stderr
     assert simulated_backend == []
+
+
+@pytest.mark.usefixtures("simulated_backend")
+def test_track_an_object_from_one_box(tmp_path: Path, simulated_frames: Path) -> None:
+    # the orbit (15 deg per frame, 1 cm of noise) keeps the sphere in the middle of the 252x196
+    # frames, about 80 px wide
+    result = invoke("track", simulated_frames, "--out", tmp_path, "--resolution", "224",
+                    "--mode", "object", "--bbox", "86,58,166,138", "--bbox-once")
+    assert result.exit_code == 0, result.output
+    frames = json.loads((tmp_path / "object.json").read_text())["frames"]
+    assert [f["source"] for f in frames] == ["given"] + ["predicted"] * (len(frames) - 1)
+    assert all(box_iou(tuple(f["box"]), (86, 58, 166, 138)) > 0.8 for f in frames)
+    refused = invoke("track", simulated_frames, "--out", tmp_path / "b", "--mode", "object",
+                     "--bbox-once")
+    assert refused.exit_code == ExitCode.CONFIG and "--bbox-once needs --bbox" in refused.stderr

@@ -48,6 +48,16 @@ def test_masks_follow_natural_order(folder: Path) -> None:
     assert all(f.mask.dtype == bool for f in frames)
 
 
+def test_a_box_once_goes_with_the_first_selected_frame_only(folder: Path) -> None:
+    source = ImageFolderSource(folder / "frames")
+    box = (1.0, 2.0, 10.0, 12.0)
+    once = list(read_frames(source, FrameSelection(start=2, stride=2), bbox=box,
+                            bbox_first_only=True))
+    assert [f.bbox for f in once] == [box, None, None, None]
+    every = list(read_frames(source, FrameSelection(start=2, stride=2), bbox=box))
+    assert [f.bbox for f in every] == [box] * 4
+
+
 def test_too_few_masks_is_a_mask_error(folder: Path) -> None:
     (folder / "masks" / "10.png").unlink()
     frames = list(read_frames(ImageFolderSource(folder / "frames"), FrameSelection(),
