@@ -12,9 +12,9 @@ The page shows, while tracking (world frame = the tracker's, OpenCV axes, drawn 
 - ``/trajectory``: the line through the valid camera centres;
 - ``/keyframes/kf_XXXX``: every keyframe's frustum (re-placed when a rebuild corrects the map);
 - ``/points``: the map's fused point cloud;
-- object mode: ``/object`` axes at the object's centre (the mean of its masked points, as the
-  keyframing uses it) and ``/object/region``, the box around the object's points; the current
-  frame in the panel is darkened outside its mask;
+- object mode: ``/object``, the object frame (``ObjectFrame``: its centre, keyframe 0's axes),
+  and ``/object/region``, the object's extent (the oriented box of its fused points); the current
+  frame in the panel is darkened outside its mask (the frame's region when none is given);
 - a panel: state and reason, frames, FPS, keyframe frustums, map points (plain text, so a test
   or a person reads the same), and the current frame.
 
@@ -39,7 +39,7 @@ from kvtracker_sdk.errors import MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_wxyz_from_rotation
 from kvtracker_sdk.io.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
-from kvtracker_sdk.tracking.keyframes import object_centre
+from kvtracker_sdk.tracking.object_model import ObjectModel
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
@@ -124,7 +124,10 @@ class Viewer:
     def log_frame(
         self, image: np.ndarray, result: FrameResult, *, mask: np.ndarray | None = None
     ) -> None:
-        """The pushed frame [H, W, 3] uint8 RGB, its result, and (object mode) its mask."""
+        """The pushed frame [H, W, 3] uint8 RGB, its result, and (object mode) its mask (default:
+        the result's region)."""
+        if mask is None and result.region is not None:
+            mask = result.region.mask
         thumb = _thumbnail(image, self.image_max_side)
         if mask is not None:
             small = _thumbnail(mask.astype(np.uint8) * 255, self.image_max_side) > 127
@@ -171,14 +174,17 @@ class Viewer:
             if len(points):
                 scene.add_point_cloud("/points", points.astype(np.float32), colors,
                                       point_size=size * 0.02)
-            if object_mode and len(points):
-                # the object's frame: at the tracker's object centre, axes of the world frame
-                centre = object_centre(keyframe_map.keyframes)
+            model = ObjectModel.of(keyframe_map) if object_mode else None
+            if model is not None:
+                # the object frame (centre, keyframe 0's axes) and its extent, in object axes
+                wxyz, position = _pose(model.frame.T_world_object)
                 scene.add_frame("/object", axes_length=size, axes_radius=size * 0.03,
-                                position=tuple(centre))
-                low, high = np.percentile(points, [2, 98], axis=0)
-                scene.add_box("/object/region", color=(255, 180, 0), dimensions=tuple(high - low),
-                              position=tuple((high + low) / 2 - centre), wireframe=True)
+                                wxyz=wxyz, position=position)
+                extent = model.frame.extent
+                box_wxyz, box_position = _pose(extent.T_ref_box)
+                scene.add_box("/object/region", color=(255, 180, 0),
+                              dimensions=tuple(float(v) for v in extent.size), wxyz=box_wxyz,
+                              position=box_position, wireframe=True)
             self.num_points = len(points)
             self._panel.content = self._panel_text()
 
