@@ -65,6 +65,11 @@ def result_to_dict(result: FrameResult) -> dict[str, Any]:
         "confidence": result.confidence,
         "keyframe_id": result.keyframe_id,
         "map_generation": result.map_generation,
+        # object mode: where the object is (x0, y0, x1, y1 pixels) and its frame in the camera's
+        "region": None if result.region is None else {
+            "box": list(result.region.box), "context_box": list(result.region.context_box),
+            "source": result.region.source.value},
+        "T_cam_object": None if result.T_cam_object is None else result.T_cam_object.tolist(),
     }
 
 
@@ -111,12 +116,16 @@ class TrackerHost:
             self._sessions[session_id] = tracker
         return {"session_id": session_id, "state": tracker.state.value}
 
-    def push(self, session_id: str, frame: bytes, timestamp: float) -> dict[str, Any]:
-        """Track one encoded frame of ``session_id``; its result as plain data."""
+    def push(
+        self, session_id: str, frame: bytes, timestamp: float,
+        bbox: tuple[float, float, float, float] | None = None,
+    ) -> dict[str, Any]:
+        """Track one encoded frame of ``session_id``; its result as plain data. ``bbox``: the
+        object's box (object mode: needed with the session's first frame only)."""
         tracker = self._session(session_id)
         image = decode_frame(frame)
         with torch_threads(self._threads):
-            result = tracker.push_frame(image, timestamp=timestamp)
+            result = tracker.push_frame(image, timestamp=timestamp, bbox=bbox)
         return result_to_dict(result)
 
     def save_session(self, session_id: str, path: str) -> dict[str, Any]:

@@ -84,3 +84,17 @@ def test_four_streams_on_ray_equal_single_process_runs(example: Any, ray_session
     assert all(report["equal"].values()), report["equal"]
     resumed = report["ray"]["stream0-resumed"]
     assert resumed[0]["state"] == "RELOCALIZING" and resumed[-1]["state"] == "TRACKING"
+
+
+def test_an_object_session_needs_its_box_once(example: Any) -> None:
+    spec = example.stream_specs(1, 12)[0]
+    feed = example.encoded_frames(spec)
+    height, width = cv2.imdecode(np.frombuffer(feed[0][0], np.uint8), cv2.IMREAD_COLOR).shape[:2]
+    box = (0.3 * width, 0.3 * height, 0.7 * width, 0.7 * height)  # the sphere sits mid-frame
+    host = TrackerHost()
+    host.open_session("obj", config={**CONFIG, "mode": "object"}, simulated=spec)
+    results = [host.push("obj", *feed[0], bbox=box)] + [host.push("obj", *f) for f in feed[1:]]
+    host.close()
+    assert results[0]["region"]["source"] == "given" and results[0]["region"]["box"] == list(box)
+    assert {r["region"]["source"] for r in results[1:]} == {"predicted"}
+    assert all(r["pose_valid"] and len(r["T_cam_object"]) == 4 for r in results)
