@@ -415,7 +415,7 @@ class Tracker(EventSource):
             if self._object_mode and not given:
                 mask, segmented = self._regions.input_mask(
                     image, index, kf_map, self._segmenter, min_side=self._preparer.patch_size)
-            segment_ms = _ms(start)
+            prompt_ms = _ms(start)  # predicting the region (and asking the segmenter)
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
                 session_input_size=self._input_size,
@@ -423,9 +423,9 @@ class Tracker(EventSource):
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
                 camera=_checked_camera(camera) if camera is not None else self._camera,
             )
-            timings = {"preprocess": _ms(start) - segment_ms}
+            timings = {"preprocess": _ms(start) - prompt_ms}
             if segmented is not None:
-                timings["segment"] = segment_ms
+                timings["segment"] = prompt_ms
             self._loop.predicted_K = None
             step = self._loop.step(frame, index, timings)
             intrinsics, source = self._intrinsics.resolve(
@@ -442,7 +442,8 @@ class Tracker(EventSource):
                 region, T_cam_object = self._regions.observe(
                     index, self._keeper.map, T_world_cam=pose, camera=intrinsics,
                     supplied=supplied)
-                timings["region"] = _ms(region_start)
+                timings["region"] = _ms(region_start) + (0.0 if segmented is not None
+                                                          else prompt_ms)
             # counted once the frame went through: an unexpected error leaves both as they were
             self._frames, self._input_size = index + 1, frame.input_size
             timings["total"] = _ms(start)

@@ -74,7 +74,7 @@ def test_the_predicted_box_follows_the_silhouette(one_box: Run) -> None:
                if r.pose_valid]
     assert len(tracked) >= 0.9 * len(one_box.results)
     ious = np.array([box_iou(r.region.box, truth) for r, truth in tracked])
-    assert np.mean(ious >= IOU) >= 0.95  # measured: 100 %, the lowest 0.91
+    assert np.mean(ious >= IOU) >= 0.95  # measured: 100 %, the lowest 0.88
     assert all(r.region.source is RegionSource.PREDICTED for r, _ in tracked[1:])
     # the frame-0 box held still would not do: the hand-held camera moves the object around
     first = one_box.truth_boxes[0]
