@@ -6,9 +6,10 @@ with a pose and the input image's intrinsics (``FrameResult.intrinsics``: given,
 network or estimated from its points):
 
 * **prompt** (before the frame is tracked): the pose extrapolated at constant velocity from the
-  two previous frames' tracked poses. Its mask is what object mode blacks the background with
-  (or its box, grown by ``crop_margin_px``, what it crops to), unless the app's ``Segmenter``
-  answers the prompt with a mask of its own (``tracking/segmenter.py``).
+  two previous frames' tracked poses. Its mask, grown by 15 % of its box (``grown_mask``), is
+  what the frame is tracked with — object mode blacks the background outside it, or crops to its
+  box grown by ``crop_margin_px`` — unless the app's ``Segmenter`` answers the prompt with a mask
+  of its own (``tracking/segmenter.py``).
 * **result** (``FrameResult.region``): the projection at the frame's own tracked pose
   (``PREDICTED``), the app's mask or box (``GIVEN``), or the segmenter's mask (``SEGMENTED``).
   Without a trusted pose (loss, relocalisation, no map yet) or when the object is out of view or
