@@ -5,11 +5,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.object_keyframe_rules import main
+from benchmarks.object_keyframe_rules import main, table
+from tests.helpers import PROJECT_ROOT
 
 
 def test_the_view_direction_rule_covers_rings_poles_and_revisits(tmp_path: Path) -> None:
-    rows = {(r.path.split(" (")[0], r.rule): r for r in main(["--out", str(tmp_path / "r.json")])}
+    measured = main(["--out", str(tmp_path / "r.json")])
+    for document in ("README.md", "docs/object_tracking.md"):  # the tables shown are these
+        assert table(measured, 10.0) in (PROJECT_ROOT / document).read_text()
+    rows = {(r.path.split(" (")[0], r.rule): r for r in measured}
     view, paper = "view_direction", "azimuth_elevation"
     assert rows["one ring", view].keyframes == rows["one ring", paper].keyframes == 34
     # a second ring 30 deg higher: about 360 / tau new keyframes (cos 30 deg of the ring's length)
