@@ -39,6 +39,7 @@ def describe_map(info: MapInfo, path: Path) -> dict[str, Any]:
         "resolution_hw": list(info.resolution),
         "preprocessing": info.preprocessing,
         "cache_dtype": info.dtype,
+        "keyframe_encoding": info.keyframe_encoding,
         "cache_layout": {
             "global_layers": list(info.layout.block_indices),
             "heads": info.layout.num_heads,
@@ -71,7 +72,7 @@ def _text(facts: dict[str, Any]) -> str:
         f"mode       {facts['mode']}, input {height}x{width} ({facts['preprocessing']}), cache "
         f"{facts['cache_dtype']}",
         f"keyframes  {facts['keyframes']} (ids {facts['keyframe_ids']}), generation "
-        f"{facts['generation']}",
+        f"{facts['generation']}, stored {facts['keyframe_encoding']}",
         f"cache      {facts['cache_bytes'] / 1e6:.1f} MB: {len(layout['global_layers'])} layers x "
         f"{layout['heads']} heads x {layout['head_dim']} dims, {facts['tokens_per_frame']} "
         f"tokens/frame",

@@ -43,6 +43,7 @@ from kvtracker_sdk.errors import (
 )
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_write
+from kvtracker_sdk.io.keyframe_codec import KEYFRAME_ENCODINGS
 from kvtracker_sdk.io.map_format import (
     MapInfo,
     encode_metadata,
@@ -198,6 +199,7 @@ def save_map(
     sdk_version: str = __version__,
     camera: Camera | None = None,
     camera_source: IntrinsicsSource | None = None,
+    compact_keyframes: bool | None = None,
 ) -> MapInfo:
     """Write ``keyframe_map`` to ``path`` atomically and return the written header.
 
@@ -205,14 +207,23 @@ def save_map(
     header); ``tracker_config_json`` is the tracker's configuration as a JSON object; ``mode``
     the tracking mode ("scene", "object"); ``camera`` the session's input-image intrinsics
     (optional; ``camera_source`` says where they came from). The cache is snapshotted under its
-    lock. If anything fails, ``path`` still holds its previous content and no temporary file
-    remains.
+    lock. ``compact_keyframes`` stores the keyframes' masks, confidences and points compactly
+    (``io/keyframe_codec.py``: float16 points, format version 3); None (default) does so exactly
+    when the cache is quantised, so a dense map keeps them bit for bit. If anything fails,
+    ``path`` still holds its previous content and no temporary file remains.
     """
     target = Path(path)
     info = _saved_info(keyframe_map, backend_info, tracker_config_json, mode, sdk_version)
     info = replace(info, camera=camera, camera_source=camera_source if camera else None)
-    tensors = map_to_tensors(keyframe_map, info.resolution)
-    info = replace(info, tensor_sha256=sha256_of(tensors))
+    if compact_keyframes is None:
+        compact_keyframes = keyframe_map.cache.quantized
+    tensors, encoding = map_to_tensors(keyframe_map, info.resolution, compact=compact_keyframes)
+    info = replace(
+        info,
+        keyframe_encoding=encoding,
+        format_version=max(info.format_version, KEYFRAME_ENCODINGS[encoding]),
+        tensor_sha256=sha256_of(tensors),
+    )
     try:
         with atomic_write(target, binary=True) as handle:
             size = write_safetensors(handle, tensors, encode_metadata(info))

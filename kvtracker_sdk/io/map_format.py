@@ -34,10 +34,12 @@ from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, 
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.io.keyframe_codec import FULL, KEYFRAME_ENCODINGS
 from kvtracker_sdk.io.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
+    KEYFRAME_ENCODING_FIELD,
     LAYER_LENGTHS_FIELD,
     LEGACY_PREPROCESSING,
     MAX_GENERATION,
@@ -103,6 +105,9 @@ class MapInfo:
     camera_source: IntrinsicsSource | None = None
     # a pruned map: tokens kept per cached layer (optional header "layer_lengths"); None = all
     layer_lengths: tuple[int, ...] | None = None
+    # how the keyframe arrays are stored (optional header "keyframe_encoding", version 3):
+    # "full" (absent) or a compact encoding of io/keyframe_codec.py
+    keyframe_encoding: str = FULL
 
     @property
     def layout(self) -> CacheLayout:
@@ -133,7 +138,7 @@ class MapInfo:
         """Name -> (safetensors dtype, shape) of every tensor this header declares."""
         return tensor_schema(
             self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution,
-            self.layer_lengths,
+            self.layer_lengths, self.keyframe_encoding,
         )  # fmt: skip
 
 
@@ -197,6 +202,8 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
     }
     if info.layer_lengths is not None:  # optional: only pruned maps have it
         metadata[LAYER_LENGTHS_FIELD] = _dumps(list(info.layer_lengths))
+    if info.keyframe_encoding != FULL:  # version 3: a compact keyframe payload
+        metadata[KEYFRAME_ENCODING_FIELD] = info.keyframe_encoding
     if info.quantized:  # version 2: what the scale tensors mean
         metadata[QUANTIZATION_FIELD] = _dumps(quantization_description(info.dtype))
     if info.camera is not None:  # optional: maps saved without known intrinsics omit it
@@ -427,6 +434,23 @@ def _decode_layer_lengths(
     return lengths
 
 
+def _decode_keyframe_encoding(fields: _Fields, version: int) -> str:
+    """How the keyframe arrays are stored: "full" unless the header names a compact encoding."""
+    if KEYFRAME_ENCODING_FIELD not in fields.metadata:
+        return FULL
+    encoding = fields.text(KEYFRAME_ENCODING_FIELD)
+    if encoding not in KEYFRAME_ENCODINGS or encoding == FULL:
+        raise fields.fail(
+            f"unsupported '{KEYFRAME_ENCODING_FIELD}' {encoding[:40]!r} "
+            f"(known: {sorted(set(KEYFRAME_ENCODINGS) - {FULL})})"
+        )
+    if version < KEYFRAME_ENCODINGS[encoding]:
+        raise fields.fail(
+            f"keyframe encoding {encoding} needs format version >= {KEYFRAME_ENCODINGS[encoding]}"
+        )
+    return encoding
+
+
 def _decode_cache_dtype(fields: _Fields, version: int) -> str:
     """The cache dtype; a quantised one needs version 2 and the scales' description."""
     dtype = fields.text("dtype")
@@ -491,6 +515,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         camera=camera,
         camera_source=camera_source,
         layer_lengths=layer_lengths,
+        keyframe_encoding=_decode_keyframe_encoding(fields, version),
     )
 
 

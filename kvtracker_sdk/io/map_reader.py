@@ -43,7 +43,7 @@ _WORKERS = max(1, min(4, os.cpu_count() or 1))
 _OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
 _TORCH_DTYPES = {
     "U8": torch.uint8, "I64": torch.int64, "F64": torch.float64, "F32": torch.float32,
-    "F16": torch.float16, "BF16": torch.bfloat16, "I8": torch.int8,
+    "F16": torch.float16, "BF16": torch.bfloat16, "I8": torch.int8, "U16": torch.uint16,
     "F8_E4M3": torch.float8_e4m3fn, "F8_E5M2": torch.float8_e5m2,
 }  # fmt: skip
 

@@ -35,9 +35,13 @@ A dense map is still written as version 1, which every SDK since the format's st
 writer picks the oldest version that holds the map. Every version back to
 ``OLDEST_READABLE_VERSION`` loads.
 
-Local points stay float32 (as in memory): a reloaded map then reproduces object centres and
-gauge scales bit for bit, and they cost ~3% of a map (the K/V dominate); float16 would save that
-3% at ~5e-4 relative error.
+Version 3 adds the compact keyframe payload of quantised maps (header field
+``keyframe_encoding``, ``compact-xyz`` or ``compact-depth``; ``io/keyframe_codec.py``): the mask as
+bits, confidences as uint16 fixed point and the local points as float16 (or DA3-style depth
+plus per-column/per-row ray slopes) instead of the ``keyframes.mask``, ``.confidence`` and
+``.local_points`` rows above, which a quantised map's K/V would otherwise leave at a third of its
+file. A dense map keeps the full payload (its points reload bit for bit) and stays version 1; a
+quantised map saved with ``compact_keyframes=False`` is still version 2.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ from typing import Any, NamedTuple
 from kvtracker_sdk.cache.keyframe_map import LEGACY_PREPROCESSING
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
+from kvtracker_sdk.io.keyframe_codec import FULL, compact_tensor_specs
 
 __all__ = [
     "CACHE_DTYPES",
@@ -57,6 +62,7 @@ __all__ = [
     "SCALE_CODE",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "KEYFRAME_ENCODING_FIELD",
     "LAYER_LENGTHS_FIELD",
     "LEGACY_PREPROCESSING",
     "MAX_GENERATION",
@@ -76,7 +82,8 @@ __all__ = [
 ]
 
 FORMAT_NAME = "kvtracker-map"
-FORMAT_VERSION = 2  # bump on any change an older reader would misread (2: quantised caches)
+# bump on any change an older reader would misread (2: quantised caches, 3: compact keyframes)
+FORMAT_VERSION = 3
 OLDEST_READABLE_VERSION = 1
 DENSE_FORMAT_VERSION = 1  # what a dense cache's map is written as (readable by older SDKs)
 # Header field of version-2 quantised maps: what the scale tensors mean (checked on loading).
@@ -87,6 +94,9 @@ PREPROCESSING_FIELD = "preprocessing"
 # Header field of a pruned map (version 2): the number of tokens each cached layer kept.
 LAYER_LENGTHS_FIELD = "layer_lengths"
 PRUNED_FORMAT_VERSION = 2  # the oldest version that holds a pruned map
+# Header field of a map whose keyframe arrays are stored compactly (version 3, keyframe_codec);
+# absent = the full payload of the table above.
+KEYFRAME_ENCODING_FIELD = "keyframe_encoding"
 # Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
 # A pickle or a zip read as a header length gives a number far above this.
 MAX_HEADER_BYTES = 8 * 1024 * 1024
@@ -114,7 +124,7 @@ QUANTIZED_CACHE_DTYPES: dict[str, int] = {"int8": 2, "float8_e4m3fn": 2}
 SCALE_CODE = "F8_E5M2"  # safetensors code of the scale tensors (cache/quantization.py)
 _ITEMSIZE = {
     "F32": 4, "F16": 2, "BF16": 2, "F64": 8, "I64": 8, "U8": 1, "I8": 1, "F8_E4M3": 1,
-    "F8_E5M2": 1,
+    "F8_E5M2": 1, "U16": 2,
 }  # fmt: skip
 
 IMAGE = "keyframes.image"
@@ -167,9 +177,11 @@ def tensor_schema(
     tokens_per_frame: int,
     resolution: tuple[int, int],
     layer_lengths: tuple[int, ...] | None = None,
+    keyframe_encoding: str = FULL,
 ) -> dict[str, TensorSpec]:
     """Name -> spec of every tensor of a map with these properties (see the module table);
-    ``layer_lengths`` for a pruned map."""
+    ``layer_lengths`` for a pruned map, ``keyframe_encoding`` (a KEYFRAME_ENCODINGS key) for
+    a compact keyframe payload."""
     n, (h, w) = num_keyframes, resolution
     schema = {}
     for layer in range(layout.num_layers):
@@ -196,6 +208,11 @@ def tensor_schema(
             LOCAL_POINTS: TensorSpec("F32", (n, h, w, 3)),
         }
     )
+    if keyframe_encoding != FULL:
+        for name in (MASK, CONFIDENCE, LOCAL_POINTS):
+            del schema[name]
+        for name, (code, shape) in compact_tensor_specs(keyframe_encoding, n, (h, w)).items():
+            schema[name] = TensorSpec(code, shape)
     return schema
 
 

@@ -23,6 +23,7 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError
 from kvtracker_sdk.geometry.se3 import check_rigid
+from kvtracker_sdk.io.keyframe_codec import FULL, decode_compact, encode_compact
 from kvtracker_sdk.io.map_format import MapInfo
 from kvtracker_sdk.io.map_schema import (
     CONFIDENCE,
@@ -144,9 +145,10 @@ def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
 
 
 def map_to_tensors(
-    keyframe_map: KeyframeMap, resolution: tuple[int, int]
-) -> dict[str, torch.Tensor]:
-    """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W).
+    keyframe_map: KeyframeMap, resolution: tuple[int, int], *, compact: bool = False
+) -> tuple[dict[str, torch.Tensor], str]:
+    """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W), and their
+    keyframe encoding: ``"full"``, or with ``compact`` the one ``keyframe_codec`` chose.
 
     Raises MapFormatError if a keyframe's arrays do not match the resolution or a pose is not
     finite: such a map could not be loaded back.
@@ -159,27 +161,34 @@ def map_to_tensors(
         problem = keyframe_problem(kf.T_world_cam, kf.confidence_map, kf.mean_confidence)
         if problem:  # the loader's checks: the SDK never writes a map it would refuse
             raise MapFormatError(f"cannot save map: keyframe {kf.keyframe_id} {problem}")
-    masks = [
-        np.zeros((h, w), np.uint8)
-        if kf.mask is None
-        else _checked(kf, "mask", kf.mask, (h, w)) != 0
+    masks = np.stack([
+        np.zeros((h, w), bool) if kf.mask is None else _checked(kf, "mask", kf.mask, (h, w)) != 0
         for kf in kfs
-    ]
+    ])  # fmt: skip
+    confidence = _stack(keyframe_map, "confidence_map", (h, w), np.float32)
+    points = _stack(keyframe_map, "local_points", (h, w, 3), np.float32)
+    if compact:
+        encoding, payload = encode_compact(masks, confidence.numpy(), points.numpy())
+    else:
+        encoding = FULL
+        payload = {
+            MASK: torch.from_numpy(masks.astype(np.uint8)),
+            CONFIDENCE: confidence,
+            LOCAL_POINTS: points,
+        }
     tensors = {
         **_cache_layers(keyframe_map.cache),
         IMAGE: _stack(keyframe_map, "image", (h, w, 3), np.uint8),
-        MASK: torch.from_numpy(np.stack(masks).astype(np.uint8)),
         HAS_MASK: torch.tensor([kf.mask is not None for kf in kfs], dtype=torch.uint8),
         T_WORLD_CAM: _stack(keyframe_map, "T_world_cam", (4, 4), np.float64),
         TIMESTAMP: torch.tensor(
             [math.nan if kf.timestamp is None else kf.timestamp for kf in kfs], dtype=torch.float64
         ),
         FRAME_INDEX: torch.tensor([kf.frame_index for kf in kfs], dtype=torch.int64),
-        CONFIDENCE: _stack(keyframe_map, "confidence_map", (h, w), np.float32),
         MEAN_CONFIDENCE: torch.tensor([kf.mean_confidence for kf in kfs], dtype=torch.float64),
-        LOCAL_POINTS: _stack(keyframe_map, "local_points", (h, w, 3), np.float32),
+        **payload,
     }
-    return tensors
+    return tensors, encoding
 
 
 # ---------------------------------------------------------------------------------- loading
@@ -191,8 +200,14 @@ def _keyframes(
     has_mask = tensors[HAS_MASK].numpy()
     if not np.all((has_mask == 0) | (has_mask == 1)):
         raise MapCorruptedError(f"{source}: mask presence flags must be 0 or 1")
-    images, masks = tensors[IMAGE].numpy(), tensors[MASK].numpy()
-    confidence, points = tensors[CONFIDENCE].numpy(), tensors[LOCAL_POINTS].numpy()
+    images = tensors[IMAGE].numpy()
+    if info.keyframe_encoding == FULL:
+        masks = tensors[MASK].numpy() != 0
+        confidence, points = tensors[CONFIDENCE].numpy(), tensors[LOCAL_POINTS].numpy()
+    else:  # decoded into new arrays: the per-keyframe copies below are the only others
+        masks, confidence, points = decode_compact(
+            tensors, info.keyframe_encoding, info.resolution, source
+        )
     stamps, frames = tensors[TIMESTAMP].numpy(), tensors[FRAME_INDEX].numpy()
     mean_confidence = tensors[MEAN_CONFIDENCE].numpy()
     for i, keyframe_id in enumerate(info.keyframe_ids):  # the same checks as on saving
@@ -205,7 +220,7 @@ def _keyframes(
             frame_index=int(frames[i]),
             timestamp=None if math.isnan(stamps[i]) else float(stamps[i]),
             image=images[i].copy(),
-            mask=masks[i] != 0 if has_mask[i] else None,
+            mask=masks[i].copy() if has_mask[i] else None,
             T_world_cam=poses[i].copy(),
             confidence_map=confidence[i].copy(),
             local_points=points[i].copy(),

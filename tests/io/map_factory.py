@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -157,6 +158,33 @@ def maps_equal(a: KeyframeMap, b: KeyframeMap) -> bool:
         and a.gauge.scale == b.gauge.scale
         and (a.generation, a.resolution, a.metadata) == (b.generation, b.resolution, b.metadata)
     )
+
+
+# what a compact keyframe payload (io/keyframe_codec.py) may change: confidences by half a
+# uint16 step (+ float32 rounding), points by float16's relative rounding 2**-11 (+ float32's
+# rounding of a depth x ray product, well below 1e-6)
+CONFIDENCE_ATOL = 0.5 / 65535 + 1e-7
+POINTS_RTOL = 2.0**-11 + 1e-6
+
+
+def compact_maps_match(a: KeyframeMap, b: KeyframeMap) -> bool:
+    """Like ``maps_equal``, but confidences and points within the compact payload's bounds."""
+    def exact(kf: Any) -> Any:
+        return replace(kf, confidence_map=np.zeros(1), local_points=np.zeros(1))
+
+    if not maps_equal(
+        replace(a, keyframes=tuple(map(exact, a.keyframes))),
+        replace(b, keyframes=tuple(map(exact, b.keyframes))),
+    ):
+        return False
+    for x, y in zip(a.keyframes, b.keyframes, strict=True):
+        u, v = x.confidence_map, y.confidence_map
+        if u.dtype != v.dtype or np.abs(u - v).max() > CONFIDENCE_ATOL:
+            return False
+        p, q = x.local_points, y.local_points
+        if p.dtype != q.dtype or np.any(np.abs(p - q) > POINTS_RTOL * np.abs(q)):
+            return False
+    return True
 
 
 def _sha(array: np.ndarray | torch.Tensor) -> str:

@@ -1,7 +1,8 @@
-"""Map files of quantised caches (format version 2), and maps of every older version.
+"""Map files of quantised caches (format version 3: compact keyframes; 2 without), and maps of
+every older version.
 
 A quantised map saved by the golden Pi3 and loaded in a new process tracks bit for bit as its
-cache did before saving. The old-version fixtures are made here, not committed: a dense map is written as version 1 (the
+cache did before saving, and its keyframe points come back within float16's rounding. The old-version fixtures are made here, not committed: a dense map is written as version 1 (the
 oldest version that holds it), and a version-1 file is also rebuilt from a new one by editing its
 header (re-sealed), so each readable version is loaded from bytes this test wrote.
 """
@@ -28,26 +29,42 @@ from kvtracker_sdk.io.map_schema import FORMAT_VERSION, OLDEST_READABLE_VERSION
 from kvtracker_sdk.io.sources import TumSource
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import PROJECT_ROOT, shared_path
-from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map, maps_equal, rewrite_header
+from tests.io.map_factory import (
+    POINTS_RTOL,
+    TRACKER_CONFIG,
+    backend_info,
+    compact_maps_match,
+    make_map,
+    maps_equal,
+    rewrite_header,
+)
 
 STORAGES = ("int8", "float8_e4m3fn")
 
 
-def _save(path: Path, storage: str | None = None, dtype: str = "float32") -> Path:
+def _save(
+    path: Path, storage: str | None = None, dtype: str = "float32", compact: bool | None = None
+) -> Path:
     keyframe_map = make_map(dtype=getattr(torch, dtype), storage=storage)
     save_map(path, keyframe_map, backend_info=backend_info(dtype=dtype),
-             tracker_config_json=TRACKER_CONFIG, mode="scene")  # fmt: skip
+             tracker_config_json=TRACKER_CONFIG, mode="scene", compact_keyframes=compact)  # fmt: skip
     return path
 
 
 @pytest.mark.parametrize("storage", STORAGES)
-def test_a_quantised_map_round_trips_bit_for_bit(tmp_path: Path, storage: str) -> None:
+def test_a_quantised_map_round_trips_with_its_cache_bit_for_bit(tmp_path: Path, storage: str) -> None:
     path = _save(tmp_path / "q.kvmap", storage)
     info = read_map_info(path)
-    assert info.format_version == 2 and info.dtype == storage and info.quantized
+    assert info.format_version == 3 and info.dtype == storage and info.quantized
+    assert info.keyframe_encoding == "compact-xyz"  # the factory's points are not pinhole rays
     loaded = load_map(path).keyframe_map
     assert loaded.cache.storage == storage and loaded.cache.dtype == torch.float32
-    assert maps_equal(loaded, make_map(storage=storage))
+    # cache, images, masks, poses bit for bit; confidences / points within the stated bounds
+    assert compact_maps_match(loaded, make_map(storage=storage))
+    assert not maps_equal(loaded, make_map(storage=storage))  # the points did change
+    full = _save(tmp_path / "full.kvmap", storage, compact=False)  # the earlier version-2 layout
+    assert read_map_info(full).format_version == 2
+    assert maps_equal(load_map(full).keyframe_map, make_map(storage=storage))
 
 
 def test_quantised_maps_are_at_least_1_9x_smaller_than_bf16(tmp_path: Path) -> None:
@@ -71,6 +88,13 @@ def test_a_backend_dtype_changes_the_compute_dtype_not_the_stored_data(tmp_path:
 def test_every_older_format_version_still_loads(tmp_path: Path) -> None:
     dense = _save(tmp_path / "dense.kvmap")
     assert read_map_info(dense).format_version == 1  # dense maps stay readable by older SDKs
+    assert read_map_info(dense).keyframe_encoding == "full"
+    # a version-2 quantised map with the full keyframe payload (as saved before version 3)
+    older = _save(tmp_path / "v2.kvmap", "int8", compact=False)
+    header = json.loads(older.read_bytes()[8 : 8 + int.from_bytes(older.read_bytes()[:8], "little")])
+    assert header["__metadata__"]["format_version"] == "2" and "keyframes.local_points" in header
+    assert "keyframe_encoding" not in header["__metadata__"]
+    assert maps_equal(load_map(older).keyframe_map, make_map(storage="int8"))
     for version in range(OLDEST_READABLE_VERSION, FORMAT_VERSION + 1):
         relabelled = tmp_path / f"v{version}.kvmap"
         relabelled.write_bytes(rewrite_header(
@@ -114,8 +138,10 @@ path, weights, frame = sys.argv[1:4]
 backend = TorchBackend.from_pretrained(weights)
 kf_map = load_map(path, expected_backend=backend.info).keyframe_map
 result = backend.track(np.load(frame), kf_map.cache, heads=HeadSet.ALL)
+keyframe_points = np.stack([kf.local_points for kf in kf_map.keyframes])
 print(json.dumps({"storage": kf_map.cache.storage, "pose": result.pose.tobytes().hex(),
-                  "points": hashlib.sha256(result.local_points.tobytes()).hexdigest()}))
+                  "points": hashlib.sha256(result.local_points.tobytes()).hexdigest(),
+                  "keyframe_points": hashlib.sha256(keyframe_points.tobytes()).hexdigest()}))
 """
 
 
@@ -155,3 +181,10 @@ def test_a_quantised_map_tracks_identically_in_a_new_process(tmp_path: Path) -> 
     assert child["pose"] == here.pose.tobytes().hex()
     assert here.local_points is not None
     assert child["points"] == hashlib.sha256(here.local_points.tobytes()).hexdigest()
+    # the keyframes' compact points: the same bits in both processes, float16-close to the pass's
+    assert read_map_info(path).keyframe_encoding == "compact-xyz"
+    loaded = np.stack([kf.local_points for kf in load_map(path).keyframe_map.keyframes])
+    assert child["keyframe_points"] == hashlib.sha256(loaded.tobytes()).hexdigest()
+    original = mapped.local_points[:2]
+    assert np.all(np.abs(loaded - original) <= POINTS_RTOL * np.abs(original))
+    assert not np.array_equal(loaded, original)
