@@ -6,10 +6,16 @@ keyframes N, one random bf16 cache is made and every **variant** is derived from
 
 - ``dense``: today's cache (bf16 K/V, the bf16 backend's);
 - ``int8`` / ``fp8``: quantised at rest (``kvtracker_sdk/cache/quantization.py``), dequantised one
-  layer at a time into a bf16 work pair while tracking.
+  layer at a time into a bf16 work pair while tracking; their map files store the keyframe
+  payload compactly (``io/keyframe_codec.py``: mask bits, uint16 confidences, float16 points —
+  DA3's as depth x rays);
+- ``int8-full``: int8 K/V with the keyframe payload in full (format version 2, as before
+  version 3), to show what the compact payload adds.
 
-Per (model, N, variant): the ``.kvmap`` file's bytes (saved for real, then deleted), the K/V
-bytes (file and cache), and the tracking step (bf16 model, camera head, 1 thread, process CPU
+Per (model, N, variant): the ``.kvmap`` file's bytes (saved for real, then deleted; keyframes
+with random images and points shaped as the family makes them: DA3's are depth x pinhole rays),
+the bytes per keyframe of each part of the file (K/V, image, mask, confidence, points, other),
+the K/V bytes (file and cache), and the tracking step (bf16 model, camera head, 1 thread, process CPU
 time): in each round every variant runs once, in rotating order, so all see the same load; the
 table gives the median over rounds and the median of the per-round ratios to ``dense``.
 
@@ -22,10 +28,16 @@ Other compactions plug in as variants: a :class:`Variant` has a ``storage`` and/
 ``transform`` (``KVCache -> KVCache``, e.g. pruning to a budget) and an optional ``measure``
 hook returning extra numbers for its row (e.g. insertion time); ``--variants`` picks them.
 
+``--files-only`` skips the steps and the accuracy table and adds the payload deviation: the
+golden models map 4 TUM frames at d = 224 in fp32; their keyframe points and confidences go
+through the compact payload and back, next to the points of the same frames mapped by the bf16
+backend (the deviation users already accept), both relative to the fp32 points.
+
 Run from the repository root::
 
     python -m benchmarks.compact_maps [--models pi3-mid da3-small] [--keyframes 8 32 64]
-        [--rounds 3] [--skip-accuracy] [--name compact_maps] [--out-dir benchmarks/results]
+        [--rounds 3] [--skip-accuracy] [--files-only] [--name compact_maps]
+        [--out-dir benchmarks/results]
 
 Writes ``benchmarks/results/<name>.json`` and prints the tables with the load average.
 """
@@ -44,14 +56,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
+from benchmarks.compact_payload import PARTS, composition, keyframe_payload, payload_deviation
 from benchmarks.model_families import MODELS as FAMILY_MODELS
 from benchmarks.tracking_vs_recompute import PRESETS
 from kvtracker_sdk.backends.torch_backend import TorchBackend
-from kvtracker_sdk.cache import CacheLayout, Keyframe, KeyframeMap, KVCache
+from kvtracker_sdk.cache import CacheLayout, KeyframeMap, KVCache
 from kvtracker_sdk.eval.cache_deviation import CacheVariant, cache_deviation, tum_frames
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.map_file import read_map_info, save_map
@@ -73,6 +85,7 @@ class Variant:
     storage: str | None = None
     transform: Callable[[KVCache], KVCache] | None = None
     measure: Callable[[Setup, KVCache], dict[str, float]] | None = None
+    compact_keyframes: bool | None = None  # save_map's (None: compact iff quantised)
 
     def apply(self, cache: KVCache) -> KVCache:
         out = cache.to(storage=self.storage) if self.storage is not None else cache
@@ -83,6 +96,7 @@ VARIANTS: dict[str, Variant] = {
     "dense": Variant("dense"),
     "int8": Variant("int8", storage="int8"),
     "fp8": Variant("fp8", storage="fp8"),
+    "int8-full": Variant("int8-full", storage="int8", compact_keyframes=False),
 }
 
 
@@ -137,24 +151,20 @@ def random_cache(setup: Setup, keyframes: int) -> KVCache:
                                keyframe_ids=range(keyframes))  # fmt: skip
 
 
-def file_bytes(setup: Setup, cache: KVCache, folder: Path) -> tuple[int, int]:
-    """(file bytes, K/V bytes in the header) of the map of ``cache`` with plain keyframes."""
-    height, width = setup.spec.size
-    keyframes = tuple(
-        Keyframe(keyframe_id=i, frame_index=i, timestamp=None,
-                 image=np.zeros((height, width, 3), np.uint8), mask=None, T_world_cam=np.eye(4),
-                 confidence_map=np.full((height, width), 0.5, np.float32),
-                 local_points=np.zeros((height, width, 3), np.float32), mean_confidence=0.5)
-        for i in cache.keyframe_ids
-    )  # fmt: skip
+def file_bytes(
+    setup: Setup, cache: KVCache, folder: Path, compact_keyframes: bool | None = None
+) -> tuple[int, int, str, dict[str, float]]:
+    """(file bytes, K/V bytes in the header, keyframe encoding, bytes per keyframe by part) of
+    the map of ``cache`` with :func:`keyframe_payload` keyframes."""
+    keyframes = tuple(keyframe_payload(setup.spec.name, setup.spec.size, cache.num_keyframes))
     keyframe_map = KeyframeMap(keyframes, cache, Sim3.identity(), generation=1,
                                resolution=setup.spec.size)  # fmt: skip
     path = folder / "bench.kvmap"
     try:
         save_map(path, keyframe_map, backend_info=setup.backend.info, tracker_config_json="{}",
-                 mode="scene")  # fmt: skip
+                 mode="scene", compact_keyframes=compact_keyframes)  # fmt: skip
         info = read_map_info(path)
-        return path.stat().st_size, info.cache_nbytes
+        return path.stat().st_size, info.cache_nbytes, info.keyframe_encoding, composition(info)
     finally:
         path.unlink(missing_ok=True)
 
@@ -168,33 +178,38 @@ def step_cpu_seconds(setup: Setup, cache: KVCache) -> float:
 
 
 def run_point(
-    setup: Setup, keyframes: int, variants: Sequence[Variant], rounds: int, folder: Path
+    setup: Setup, keyframes: int, variants: Sequence[Variant], rounds: int, folder: Path,
+    *, steps: bool = True,
 ) -> list[dict[str, Any]]:
-    """Every variant at N = ``keyframes``: sizes, then ``rounds`` rotating rounds of steps."""
+    """Every variant at N = ``keyframes``: sizes, then ``rounds`` rotating rounds of steps
+    (none without ``steps``)."""
     base = random_cache(setup, keyframes)
     caches = {v.name: v.apply(base) for v in variants}
     rows: dict[str, dict[str, Any]] = {}
     for variant in variants:
         cache = caches[variant.name]
-        size, kv_bytes = file_bytes(setup, cache, folder)
+        size, kv_bytes, encoding, parts = file_bytes(setup, cache, folder, variant.compact_keyframes)
         rows[variant.name] = {
             "model": setup.spec.name, "size_hw": list(setup.spec.size), "keyframes": keyframes,
             "variant": variant.name, "storage": cache.storage, "file_bytes": size,
-            "file_kv_bytes": kv_bytes, "cache_bytes": cache.nbytes,
+            "file_kv_bytes": kv_bytes, "keyframe_encoding": encoding,
+            "file_bytes_per_keyframe": parts, "cache_bytes": cache.nbytes,
             "cache_allocated_bytes": cache.allocated_nbytes, "step_cpu_s": [],
         }  # fmt: skip
         if variant.measure is not None:
             rows[variant.name].update(variant.measure(setup, cache))
-        step_cpu_seconds(setup, cache)  # warm-up
-    for round_index in range(rounds):
+        if steps:
+            step_cpu_seconds(setup, cache)  # warm-up
+    for round_index in range(rounds if steps else 0):
         shift = round_index % len(variants)
         for variant in [*variants[shift:], *variants[:shift]]:
             rows[variant.name]["step_cpu_s"].append(step_cpu_seconds(setup, caches[variant.name]))
     reference = rows[variants[0].name]
     for row in rows.values():
-        row["step_cpu_median_s"] = statistics.median(row["step_cpu_s"])
-        ratios = [a / b for a, b in zip(row["step_cpu_s"], reference["step_cpu_s"], strict=True)]
-        row["step_ratio_median"] = statistics.median(ratios)
+        if steps:
+            row["step_cpu_median_s"] = statistics.median(row["step_cpu_s"])
+            ratios = [a / b for a, b in zip(row["step_cpu_s"], reference["step_cpu_s"], strict=True)]
+            row["step_ratio_median"] = statistics.median(ratios)
         row["file_ratio"] = reference["file_bytes"] / row["file_bytes"]
         row["kv_ratio"] = reference["cache_bytes"] / row["cache_bytes"]
     return list(rows.values())
@@ -225,10 +240,27 @@ def print_tables(result: dict[str, Any]) -> None:
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
     for row in result["rows"]:
         h, w = row["size_hw"]
+        step = (f"{row['step_cpu_median_s']:.3f} | {row['step_ratio_median']:.2f}"
+                if "step_cpu_median_s" in row else "– | –")  # fmt: skip
         print(f"| {row['model']}, {h}×{w} | {row['keyframes']} | {row['variant']} | "
               f"{row['file_bytes'] / 1e6:.1f} MB | {row['file_ratio']:.2f}× | "
-              f"{row['cache_bytes'] / 1e6:.1f} MB | {row['kv_ratio']:.2f}× | "
-              f"{row['step_cpu_median_s']:.3f} | {row['step_ratio_median']:.2f} |")  # fmt: skip
+              f"{row['cache_bytes'] / 1e6:.1f} MB | {row['kv_ratio']:.2f}× | {step} |")  # fmt: skip
+    print("\n| model | N | variant | keyframe encoding | kB per keyframe: " + " | ".join(PARTS)
+          + " | other |")  # fmt: skip
+    print("|---|---:|---|---|" + "---:|" * (len(PARTS) + 1))
+    for row in result["rows"]:
+        parts = " | ".join(f"{v / 1e3:.0f}" for v in row["file_bytes_per_keyframe"].values())
+        print(f"| {row['model']} | {row['keyframes']} | {row['variant']} | "
+              f"{row['keyframe_encoding']} | {parts} |")  # fmt: skip
+    if result.get("payload"):
+        print("\n| golden model | encoding | points rel. median / max: compact | bf16 backend | "
+              "confidence |Δ| max: compact | bf16 backend |")
+        print("|---|---|---|---|---:|---:|")
+        for row in result["payload"]:
+            print(f"| {row['model']} | {row['encoding']} | {row['compact_points_rel_median']:.1e} / "
+                  f"{row['compact_points_rel_max']:.1e} | {row['bf16_points_rel_median']:.1e} / "
+                  f"{row['bf16_points_rel_max']:.1e} | {row['compact_confidence_abs_max']:.1e} | "
+                  f"{row['bf16_confidence_abs_max']:.1e} |")  # fmt: skip
     if result["accuracy"]:
         print("\n| golden model | variant/compute | K/V | pose max | pose median | rot max (°) | points median |")
         print("|---|---|---:|---:|---:|---:|---:|")
@@ -246,6 +278,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--skip-accuracy", action="store_true")
+    parser.add_argument("--files-only", action="store_true",
+                        help="map file sizes and the payload deviation; no steps, no accuracy")  # fmt: skip
     parser.add_argument("--name", default="compact_maps")
     parser.add_argument("--out-dir", type=Path, default=RESULTS)
     return parser.parse_args(argv)
@@ -255,6 +289,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)  # random weights make denormals, which slow CPU kernels
+    try:
+        return run(args)
+    finally:  # process-wide state: a caller (the smoke test's pytest process) gets it back
+        torch.set_flush_denormal(False)
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
     variants = [VARIANTS[name] for name in args.variants]
     if variants[0].name != "dense":
         variants.insert(0, VARIANTS["dense"])  # the ratios' reference
@@ -267,12 +308,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         for name in args.models:
             setup = make_setup(MODELS[name])
             for keyframes in args.keyframes:
-                rows = run_point(setup, keyframes, variants, args.rounds, Path(folder))
+                rows = run_point(setup, keyframes, variants, args.rounds, Path(folder),
+                                 steps=not args.files_only)  # fmt: skip
                 result["rows"].extend(rows)
                 print(f"{name} N={keyframes}: " + ", ".join(
-                    f"{r['variant']} {r['step_cpu_median_s']:.3f}s" for r in rows), flush=True)  # fmt: skip
+                    f"{r['variant']} {r['file_ratio']:.2f}x" for r in rows), flush=True)  # fmt: skip
             del setup
-    if not args.skip_accuracy:
+    if args.files_only:
+        result["payload"] = payload_deviation(SHARED)
+    elif not args.skip_accuracy:
         result["accuracy"] = accuracy(variants)
     result["load_average_end"] = [round(x, 2) for x in os.getloadavg()]
     args.out_dir.mkdir(parents=True, exist_ok=True)
