@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import inspect
+import json
 import subprocess
 import sys
 
@@ -25,28 +26,39 @@ def test_every_error_derives_from_the_root() -> None:
         assert issubclass(cls, errors.KVTrackerError), cls
 
 
-def test_import_is_cheap() -> None:
-    code = "import sys, kvtracker_sdk; print(any(m in sys.modules for m in ('torch', 'cv2', 'onnxruntime', 'openvino')))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+# One child answers the three questions that need a fresh interpreter (each start costs ~0.5 s
+# of CPU): what a bare import loads, whether an unconfigured library logger prints, and what
+# naming the graph backends loads. The report is the child's only output.
+_CHILD = """
+import json, sys
+import kvtracker_sdk
+bare = [m for m in ('torch', 'cv2', 'onnxruntime', 'openvino') if m in sys.modules]
+from kvtracker_sdk.log import get_logger
+get_logger('test').warning('should not print', x=1)
+kvtracker_sdk.OnnxBackend; kvtracker_sdk.OpenVinoBackend
+graph = [m for m in ('onnxruntime', 'openvino') if m in sys.modules]
+print(json.dumps({"bare": bare, "graph": graph}))
+"""
 
 
-def test_graph_backends_import_their_runtime_only_when_one_is_made() -> None:
-    code = (
-        "import sys, kvtracker_sdk; kvtracker_sdk.OnnxBackend; kvtracker_sdk.OpenVinoBackend; "
-        "print([m for m in ('onnxruntime', 'openvino') if m in sys.modules])"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
+@pytest.fixture(scope="module")
+def fresh_child() -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, check=True)
 
 
-def test_library_is_silent_by_default() -> None:
-    code = (
-        "from kvtracker_sdk.log import get_logger\n"
-        "get_logger('test').warning('should not print', x=1)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout == "" and out.stderr == ""
+def test_import_is_cheap(fresh_child: subprocess.CompletedProcess[str]) -> None:
+    assert json.loads(fresh_child.stdout)["bare"] == []
+
+
+def test_graph_backends_import_their_runtime_only_when_one_is_made(
+    fresh_child: subprocess.CompletedProcess[str],
+) -> None:
+    assert json.loads(fresh_child.stdout)["graph"] == []
+
+
+def test_library_is_silent_by_default(fresh_child: subprocess.CompletedProcess[str]) -> None:
+    assert fresh_child.stderr == ""
+    assert fresh_child.stdout.splitlines() == [fresh_child.stdout.strip()]  # the report alone
 
 
 def test_pose_is_immutable_and_exposes_named_quaternions() -> None:

@@ -103,36 +103,41 @@ _CHILD = """
 import json, sys
 from kvtracker_sdk.tracking.tracker import Tracker
 from tests.io.map_factory import map_digest
-path, spec = sys.argv[1], json.loads(sys.argv[2])
-if spec["kind"] == "pi3":
-    import torch
-    torch.set_num_threads(1)
-    from kvtracker_sdk.backends.torch_backend import TorchBackend
-    backend = TorchBackend.from_pretrained(spec["weights"])
-else:
-    from kvtracker_sdk.backends.simulated import SimulatedBackend
-    from kvtracker_sdk.backends.simulated_scene import orbit
-    backend = SimulatedBackend(orbit(**spec["orbit"]), **spec["options"])
-with Tracker.from_map(path, backend) as tracker:
-    report = {"digest": map_digest(tracker.keyframe_map), "config": tracker.config.to_dict(),
-              "status": [tracker.state.value, tracker.reason.value], "poses": [], "states": []}
-    for keyframe in tracker.keyframe_map.keyframes:
-        result = tracker.push_frame(keyframe.image)
-        report["poses"].append(result.pose.T_world_cam.tolist())
-        report["states"].append(result.state.value)
-print(json.dumps(report))
+reports = []
+for path, spec in json.loads(sys.argv[1]):
+    if spec["kind"] == "pi3":
+        import torch
+        torch.set_num_threads(1)
+        from kvtracker_sdk.backends.torch_backend import TorchBackend
+        backend = TorchBackend.from_pretrained(spec["weights"])
+    else:
+        from kvtracker_sdk.backends.simulated import SimulatedBackend
+        from kvtracker_sdk.backends.simulated_scene import orbit
+        backend = SimulatedBackend(orbit(**spec["orbit"]), **spec["options"])
+    with Tracker.from_map(path, backend) as tracker:
+        report = {"digest": map_digest(tracker.keyframe_map), "config": tracker.config.to_dict(),
+                  "status": [tracker.state.value, tracker.reason.value], "poses": [], "states": []}
+        for keyframe in tracker.keyframe_map.keyframes:
+            result = tracker.push_frame(keyframe.image)
+            report["poses"].append(result.pose.T_world_cam.tolist())
+            report["states"].append(result.state.value)
+    reports.append(report)
+print(json.dumps(reports))
 """
 
 
-def reload_in_new_process(saved: Saved) -> dict[str, Any]:
-    """A fresh interpreter builds the backend, calls ``Tracker.from_map`` and pushes every
-    keyframe image; returns its report: the loaded map's digest (``map_digest``), config,
-    state and reason after loading, and the pose (floats exact through JSON) and state of
-    each pushed image."""
+def reload_in_new_process(*saved: Saved) -> list[dict[str, Any]]:
+    """One fresh interpreter (starting one with torch costs ~2 s of CPU) reloads each saved
+    session in turn: it builds the backend, calls ``Tracker.from_map`` and pushes every keyframe
+    image. Returns one report per session: the loaded map's digest (``map_digest``), config,
+    state and reason after loading, and the pose (floats exact through JSON) and state of each
+    pushed image."""
+    sessions = [[str(s.path), s.spec] for s in saved]
     child = subprocess.run(
-        [sys.executable, "-c", _CHILD, str(saved.path), json.dumps(saved.spec)],
+        [sys.executable, "-c", _CHILD, json.dumps(sessions)],
         cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert child.returncode == 0, child.stderr
-    report: dict[str, Any] = json.loads(child.stdout)
-    return report
+    reports: list[dict[str, Any]] = json.loads(child.stdout)
+    assert len(reports) == len(saved)
+    return reports
