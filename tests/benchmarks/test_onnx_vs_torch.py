@@ -45,5 +45,8 @@ def test_main_times_and_reuses_the_export(
     assert len(table) == 2 + 2 and table[-1].startswith("| tiny | 2 | camera |")
 
     assert manifest.stat().st_mtime_ns == stamp  # same weights: the session's export is reused
+    int8 = {p: p.stat().st_mtime_ns for p in (tmp_path / "onnx" / "tiny-int8").glob("*.onnx")}
+    assert int8  # the first run quantised the tracking graphs beside the export
     main(argv[:-4] + ["--keyframes", "1", "--name", "again", "--out-dir", str(tmp_path)])
     assert manifest.stat().st_mtime_ns == stamp  # same weights: the export is reused
+    assert {p: p.stat().st_mtime_ns for p in int8} == int8  # and so are the int8 graphs
