@@ -73,6 +73,7 @@ PUBLIC_API = [
     "CacheLayout",
     "Camera",
     "CheckpointMismatchError",
+    "CompileError",
     "ConfigError",
     "EvalManifest",
     "EvalManyResult",
