@@ -58,13 +58,15 @@ from benchmarks.shared_cpu_timing import OtherLoad
 from kvtracker_sdk.backends.torch_compile import CompiledTracking, CompileOptions
 from kvtracker_sdk.cache import KVCache
 from kvtracker_sdk.models.layers.attention import Attention
+from kvtracker_sdk.models.layers.cached_attention import use_cached_kernel
 from kvtracker_sdk.models.registry import family_of
 from kvtracker_sdk.types import HeadSet
 
 RESULTS = Path(__file__).parent / "results"
 HEADS = {"camera": HeadSet.CAMERA, "conf": HeadSet.CONFIDENCE}
-TORCH_VARIANTS = ("torch-fp32", "torch-bf16", "compile-bf16", "compile-fp32",
-                  "official-bf16", "official-fp32")  # fmt: skip
+# <kind>-<dtype>; "products": the cached attention as two bf16 products (cached_attention.py)
+TORCH_VARIANTS = ("torch-fp32", "torch-bf16", "compile-bf16", "compile-fp32", "products-bf16",
+                  "compile+products-bf16", "official-bf16", "official-fp32")  # fmt: skip
 VARIANTS = (*TORCH_VARIANTS, "onnx-fp32", "openvino-bf16", "openvino-fp32")
 PEAK_SHAPE = (1024, 1024, 4096)  # m, k, n of the GEMM probes
 Step = Callable[[], np.ndarray]  # one tracking step -> T_world_cam [4, 4]
@@ -118,21 +120,25 @@ class Variants:
 
     def __init__(self, name: str, args: argparse.Namespace) -> None:
         self.name, self.args, self.notes = name, args, {}
+        # one model per torch variant (a compiled one freezes its own weights); "fp32" serves
+        # torch-fp32 and the official variants
         self.models = {"fp32": build_model(name, torch.float32)}
-        wanted = set(args.variants)
-        if wanted & {"torch-bf16", "compile-bf16"}:
-            self.models["bf16"] = build_model(name, torch.bfloat16)
-        self.compiled: dict[str, Any] = {}
-        for dtype in ("bf16", "fp32"):
-            if f"compile-{dtype}" in wanted:
-                compiled_model = build_model(name, DTYPES[dtype])  # freezing owns its weights
-                compiled = CompiledTracking(
-                    compiled_model, CompileOptions(freezing=not args.no_freezing)
-                )
-                compiled_model.forward_track = compiled  # as TorchBackend(compile=...) does
-                self.compiled[dtype] = (compiled_model, compiled)
+        self.compiled: dict[str, CompiledTracking] = {}
+        for variant in args.variants:
+            kind, _, dtype = variant.rpartition("-")
+            if kind in ("official", "onnx", "openvino") or variant == "torch-fp32":
+                continue
+            model = build_model(name, DTYPES[dtype])
+            if "products" in kind:
+                use_cached_kernel(model, "products")
+            if "compile" in kind:
+                compiled = CompiledTracking(model, CompileOptions(freezing=not args.no_freezing))
+                model.forward_track = compiled  # as TorchBackend(compile=...) does
+                self.compiled[variant] = compiled
+            self.models[variant] = model
         self.family = family_of(self.models["fp32"])
         self.exported: dict[str, Any] = {}
+        wanted = set(args.variants)
         if wanted & {"onnx-fp32", "openvino-bf16", "openvino-fp32"}:
             self._export_backends(wanted)
 
@@ -183,18 +189,18 @@ class Variants:
 
         steps: dict[str, Step] = {}
         for variant in self.args.variants:
-            kind, _, dtype = variant.partition("-")
-            if kind == "torch" and dtype in self.models:
-                steps[variant] = torch_step(self.models[dtype], caches[dtype])
-            elif kind == "compile" and dtype in self.compiled:
-                steps[variant] = torch_step(self.compiled[dtype][0], caches[dtype])
+            kind, _, dtype = variant.rpartition("-")
+            if variant == "torch-fp32":
+                steps[variant] = torch_step(fp32, caches["fp32"])
+            elif variant in self.models:
+                steps[variant] = torch_step(self.models[variant], caches[dtype])
             elif kind == "official":
                 context = lambda d=DTYPES[dtype]: official_code(d)  # noqa: E731
                 steps[variant] = torch_step(fp32, caches[dtype], context)
             elif variant in self.exported:
                 backend = self.exported[variant]
                 steps[variant] = lambda b=backend, c=caches["fp32"]: np.asarray(
-                    b.track_batch(image, c, heads=heads)[0].pose
+                    b.track(image[0], c, heads=heads).pose
                 )
         return steps
 
@@ -223,15 +229,11 @@ def gemm_probe(dtype: torch.dtype) -> Callable[[], torch.Tensor]:
 
 # ---------------------------------------------------------------------------- timing
 def time_point(steps: dict[str, Callable[[], Any]], args: argparse.Namespace) -> dict[str, Any]:
-    """Interleaved rounds over ``steps``; per step its samples (wall, cpu) and the first call."""
+    """Interleaved rounds over ``steps`` (after their first calls): per step its samples (wall,
+    cpu) and the cores other processes used per round."""
     names = list(steps)
     samples: dict[str, dict[str, list[float]]] = {n: {"wall": [], "cpu": []} for n in names}
-    first: dict[str, float] = {}
     others: list[float] = []
-    for name in names:  # first calls (compilation) before any timed round
-        start = time.perf_counter()
-        steps[name]()
-        first[name] = time.perf_counter() - start
     for round_index in range(args.warmup + args.rounds):
         shift = round_index % len(names)
         load = OtherLoad()
@@ -242,13 +244,17 @@ def time_point(steps: dict[str, Callable[[], Any]], args: argparse.Namespace) ->
                 samples[name]["wall"].append(time.perf_counter() - wall)
                 samples[name]["cpu"].append(time.process_time() - cpu)
         others.append(load.cores())
-    return {"samples": samples, "first_call_s": first, "others_cores": others}
+    return {"samples": samples, "others_cores": others}
 
 
 def run_point(variants: Variants, size: int, keyframes: int, heads: str,
               args: argparse.Namespace) -> dict[str, Any]:  # fmt: skip
     steps = variants.steps(size, keyframes, HEADS[heads])
-    poses = {name: step() for name, step in steps.items()}
+    poses, first_call = {}, {}
+    for name, step in steps.items():  # first calls: compilation, export sessions' warm-up
+        start = time.perf_counter()
+        poses[name] = step()
+        first_call[name] = time.perf_counter() - start
     flops = count_flops(steps["torch-fp32"]) if "torch-fp32" in steps else None
     probes = {"peak-bf16": gemm_probe(torch.bfloat16), "peak-fp32": gemm_probe(torch.float32)}
     load_start = os.getloadavg()
@@ -260,12 +266,12 @@ def run_point(variants: Variants, size: int, keyframes: int, heads: str,
     rows = {}
     reference = poses.get("torch-fp32")
     for name in steps:
-        dtype = name.rpartition("-")[2]
+        dtype = name.rpartition("-")[2]  # the GEMM peak of the variant's matmul dtype
         limit = None if flops is None else flops / peak[dtype]
         rows[name] = {
             "best_s": best[name],
             "median_s": statistics.median(timed["samples"][name][clock]),
-            "first_call_s": timed["first_call_s"][name],
+            "first_call_s": first_call[name],
             "limit_s": limit,
             "fraction_of_limit": None if limit is None else limit / best[name],
             "pose_deviation": None if reference is None
@@ -357,9 +363,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                     result["load_average_end"] = os.getloadavg()
                     path.write_text(json.dumps(result, indent=1) + "\n")  # kept if stopped
         result.setdefault("compile", {}).update({
-            f"{name}-{dtype}": {"status": c.report.status, "first_call_s": c.report.first_call_s,
+            f"{name} {variant}": {"status": c.report.status, "first_call_s": c.report.first_call_s,
                                 "cache_dir": str(c.report.cache_dir)}
-            for dtype, (_, c) in variants.compiled.items()
+            for variant, c in variants.compiled.items()
         })  # fmt: skip
         del variants
     path.write_text(json.dumps(result, indent=1) + "\n")
