@@ -23,7 +23,8 @@ The backend owns the model it is given: it casts it to ``dtype`` (final heads st
 it to ``device``; with ``compile`` its ``forward_track`` is replaced by a compiled one
 (``backends/torch_compile.py``). ``threads`` sets torch's intra-op threads, process-wide (None:
 chosen from the usable cores and the load, ``kvtracker_sdk/threads.py``); ``backend.threads``
-reports the choice. The weights fingerprint is taken before the cast, so fp32 and bf16 backends of
+reports the choice. ``attention="products"`` computes the tracking step's attention over the cache
+as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights fingerprint is taken before the cast, so fp32 and bf16 backends of
 the same weights report the same ``info.fingerprint`` (their caches still differ by ``dtype``).
 """
 
@@ -50,6 +51,7 @@ from kvtracker_sdk.errors import (
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
 from kvtracker_sdk.models.family import FrameOutputs, Network
+from kvtracker_sdk.models.layers.cached_attention import use_cached_kernel
 from kvtracker_sdk.models.registry import family_of, load_model
 from kvtracker_sdk.threads import ThreadSettings
 from kvtracker_sdk.types import HeadSet
@@ -126,6 +128,7 @@ class TorchBackend:
         weights_fingerprint: str | None = None,
         threads: int | None = None,
         compile: bool | CompileOptions = False,
+        attention: str = "sdpa",
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
         self._threads = ThreadSettings.resolve(threads, torch.get_num_threads())  # before any work
@@ -139,6 +142,7 @@ class TorchBackend:
             self._model: nn.Module | None = model.to(target).eval()
         except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
             raise BackendError(f"cannot move the model to {target}: {exc}") from exc
+        use_cached_kernel(model, attention)  # ConfigError for unknown kernels
         torch.set_num_threads(self._threads.threads)
         _log.info("torch threads", settings=self._threads.describe())
         self._compiled: CompiledTracking | None = None
@@ -161,6 +165,7 @@ class TorchBackend:
             dtype=str(compute_dtype).removeprefix("torch."),
             device=str(self._device),
             accelerations=_accelerations(self._device)
+            + (() if attention == "sdpa" else (f"cached-attention-{attention}",))
             + (() if compile_options is None else (compile_options.describe(),)),
         )
 
@@ -175,6 +180,7 @@ class TorchBackend:
         model_name: str | None = None,
         threads: int | None = None,
         compile: bool | CompileOptions = False,
+        attention: str = "sdpa",
     ) -> TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
@@ -189,6 +195,7 @@ class TorchBackend:
             weights_fingerprint=loaded.fingerprint,
             threads=threads,
             compile=compile,
+            attention=attention,
         )
 
     # ------------------------------------------------------------------ Backend protocol

@@ -5,6 +5,7 @@ no C++ compilation, so the test stays cheap; Inductor itself is exercised by
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -49,14 +50,16 @@ def test_compiled_step_equals_eager_and_reports(model: Pi3, images: np.ndarray) 
 
 
 def test_missing_compiler_is_a_typed_error_or_an_eager_fallback(
-    model: Pi3, images: np.ndarray, monkeypatch: pytest.MonkeyPatch
+    model: Pi3, images: np.ndarray, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path))  # process-wide: restored after
     monkeypatch.setenv("CXX", "no-such-compiler-kvtracker")
     with pytest.raises(CompileError, match="no-such-compiler-kvtracker"):
         TorchBackend(copy.deepcopy(model), compile=True)
     backend = TorchBackend(copy.deepcopy(model), compile=CompileOptions(fallback=True))
     report = backend.compile_report
     assert report is not None and report.status.startswith("eager:")
+    assert report.cache_dir == tmp_path
     cache = backend.map(images[:2]).cache
     assert np.isfinite(backend.track(images[2], cache).pose).all()
 
@@ -68,9 +71,7 @@ def test_compile_options_are_checked(model: Pi3) -> None:
         TorchBackend(copy.deepcopy(model), compile=CompileOptions(backend="eager"))
 
 
-def test_inductor_cache_dir_follows_the_user_cache(
-    tmp_path: object, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_inductor_cache_dir_follows_the_user_cache(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
     monkeypatch.setenv("KVTRACKER_CACHE_DIR", "/x/kv")
     assert str(inductor_cache_dir()) == "/x/kv/inductor"
@@ -80,3 +81,16 @@ def test_inductor_cache_dir_follows_the_user_cache(
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "/x/ind")
     assert str(inductor_cache_dir()) == "/x/ind"
     assert str(inductor_cache_dir(CompileOptions(cache_dir="/x/opt"))) == "/x/opt"  # type: ignore[arg-type]
+
+
+def test_the_products_attention_is_a_backend_option(model: Pi3, images: np.ndarray) -> None:
+    eager = TorchBackend(copy.deepcopy(model))
+    products = TorchBackend(copy.deepcopy(model), attention="products")
+    assert "cached-attention-products" in products.info.accelerations
+    assert products.info.fingerprint == eager.info.fingerprint
+    cache = eager.map(images[:2]).cache
+    np.testing.assert_allclose(
+        products.track(images[2], cache).pose, eager.track(images[2], cache).pose, atol=1e-5
+    )
+    with pytest.raises(ConfigError, match="flash2"):
+        TorchBackend(copy.deepcopy(model), attention="flash2")
