@@ -9,11 +9,15 @@ needs. So:
 - ``import kvtracker_sdk`` sets ``OMP_WAIT_POLICY=PASSIVE`` (waiting threads sleep) unless the
   variable is set or torch was imported first (OpenMP reads it once, when torch loads);
   ``wait_policy()`` reports what torch's OpenMP runs with.
-- ``choose_threads`` picks the intra-op thread count from the cores this process may run on
-  (``os.sched_getaffinity``) minus the cores other processes keep busy (the 1-minute load
-  average), at least 1, and never more than torch is already set to (``OMP_NUM_THREADS`` or a
-  caller's ``torch.set_num_threads`` stay upper bounds). ``TorchBackend(threads=None)`` applies
-  it; an ``int`` overrides it.
+- ``choose_threads`` picks the intra-op thread count: with passive waiting, every core this
+  process may run on (``os.sched_getaffinity``): a sleeping waiter costs nothing, and a process
+  with more runnable threads gets a larger share of a busy CPU (measured under a load average of
+  7 on 2 cores, DA3-Small: 2 passive threads 0.26 s median, 1 thread 0.62 s, 2 spinning threads
+  3.98 s; ``benchmarks/thread_defaults.py``). With spinning waiters (torch was imported before
+  ``kvtracker_sdk``, or the policy was set active), only the cores other processes leave free
+  (1-minute load average), at least 1. Never more than torch is already set to
+  (``OMP_NUM_THREADS`` or a caller's ``torch.set_num_threads`` stay upper bounds).
+  ``TorchBackend(threads=None)`` applies it; an ``int`` overrides it.
 
 ``torch.set_num_threads`` is process-wide: the last backend made (or the caller) sets it.
 """
@@ -74,16 +78,15 @@ def usable_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def choose_threads(cores: int, load_average: float) -> int:
+def choose_threads(cores: int, load_average: float, *, passive: bool) -> int:
     """Intra-op threads for ``cores`` usable cores when other processes keep ``load_average``
-    cores busy: the free cores (rounded to the nearest whole core), at least 1, at most ``cores``.
-
-    E.g. 2 cores: load 0.3 -> 2 threads, load 0.8 -> 1, load 4 -> 1 (a thread that must wait for
-    a descheduled sibling at every barrier is slower than no sibling).
+    cores busy. ``passive`` waiting: all ``cores``. Spinning: the free cores (rounded to the
+    nearest whole core), at least 1 — e.g. 2 cores: load 0.3 -> 2 threads, load 0.8 -> 1, load
+    4 -> 1 (a spinning thread that waits for a descheduled sibling takes the core it needs).
     """
     if cores < 1:
         raise ConfigError(f"cores must be >= 1, got {cores}")
-    if not math.isfinite(load_average) or load_average < 0:
+    if passive or not math.isfinite(load_average) or load_average < 0:
         return cores
     free = math.floor(cores - load_average + 0.5)
     return max(1, min(cores, free))
@@ -109,7 +112,8 @@ class ThreadSettings:
         except (AttributeError, OSError):  # Windows
             load = None
         if requested is None:
-            chosen = choose_threads(cores, 0.0 if load is None else load)
+            passive = wait_policy() == "passive"
+            chosen = choose_threads(cores, 0.0 if load is None else load, passive=passive)
             threads, source = max(1, min(chosen, current)), "auto"
         elif isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise ConfigError(f"threads must be an int >= 1 or None (automatic), got {requested!r}")

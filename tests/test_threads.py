@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+from kvtracker_sdk import threads
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.threads import ThreadSettings, choose_threads
 
@@ -17,16 +18,24 @@ from kvtracker_sdk.threads import ThreadSettings, choose_threads
     ("cores", "load", "expected"),
     [(2, 0.0, 2), (2, 0.3, 2), (2, 0.8, 1), (2, 4.0, 1), (8, 2.2, 6), (1, 0.0, 1), (4, -1.0, 4)],
 )
-def test_threads_leave_the_busy_cores_alone(cores: int, load: float, expected: int) -> None:
-    assert choose_threads(cores, load) == expected
+def test_spinning_threads_leave_the_busy_cores_alone(cores: int, load: float, expected: int) -> None:
+    assert choose_threads(cores, load, passive=False) == expected
+
+
+@pytest.mark.parametrize(("cores", "load"), [(2, 0.0), (2, 4.0), (8, 7.5)])
+def test_passive_threads_use_every_core(cores: int, load: float) -> None:
+    assert choose_threads(cores, load, passive=True) == cores
 
 
 def test_resolve_user_auto_and_bad_values(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
     monkeypatch.setattr(os, "getloadavg", lambda: (1.1, 0.0, 0.0))
+    monkeypatch.setattr(threads, "wait_policy", lambda: "active")
     auto = ThreadSettings.resolve(None, current=8)
     assert (auto.threads, auto.source, auto.usable_cores, auto.load_average) == (3, "auto", 4, 1.1)
     assert ThreadSettings.resolve(None, current=2).threads == 2  # torch's setting is a ceiling
+    monkeypatch.setattr(threads, "wait_policy", lambda: "passive")
+    assert ThreadSettings.resolve(None, current=8).threads == 4
     user = ThreadSettings.resolve(5, current=1)
     assert (user.threads, user.source) == (5, "user")
     assert "threads=5 (user; 4 cores, load 1.1" in user.describe()
@@ -69,5 +78,6 @@ def test_torch_backend_applies_and_reports_threads() -> None:
         torch.set_num_threads(1)
         auto = TorchBackend(random_pi3(seed=1))
         assert auto.threads.source == "auto" and auto.threads.threads == 1  # never above torch's
+        assert auto.threads.wait_policy == threads.wait_policy()
     finally:
         torch.set_num_threads(before)
