@@ -10,8 +10,12 @@ become constants of the compiled graph, so Inductor folds them and pre-packs the
 weights for oneDNN; the backend owns its model, so the weights never change under it. Mapping stays
 eager (it runs rarely and on varying keyframe counts).
 
-Compilation happens on the first call and again when the shapes change (another frame size, a
-cache that grew to more keyframes: after the second length Dynamo compiles a dynamic-length graph).
+Compilation happens on the first call and again for every new frame size or keyframe count: the
+cache length is a Python int (it slices the cache), so Dynamo specialises on it. A map that grows
+recompiles once per count (a few seconds per count for a tiny model with a warm cache, minutes cold
+for a real one); past torch's recompile limit (``torch._dynamo.config.recompile_limit``, 8) further
+counts run eager. The compiled path therefore pays off for fixed maps (relocalisation against a
+saved map, a map that is rebuilt rarely) more than for a map that grows every few frames.
 Inductor keeps its compiled kernels and FX graphs in ``$TORCHINDUCTOR_CACHE_DIR``, which this module
 sets, unless it is set, to ``CompileOptions.cache_dir`` or ``<user cache>/kvtracker_sdk/inductor``
 (``$KVTRACKER_CACHE_DIR/inductor`` when that is set): a later process with the same model and shapes
