@@ -274,6 +274,9 @@ def run_point(variants: Variants, size: int, keyframes: int, heads: str,
             "first_call_s": first_call[name],
             "limit_s": limit,
             "fraction_of_limit": None if limit is None else limit / best[name],
+            # against the fastest GEMM measured (bf16): comparable across dtypes and runtimes
+            "fraction_of_peak_limit": None if flops is None
+            else flops / max(peak.values()) / best[name],
             "pose_deviation": None if reference is None
             else float(np.abs(poses[name] - reference).max()),
         }  # fmt: skip
@@ -315,6 +318,34 @@ def markdown_table(points: list[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n\nGEMM peak in the same rounds: " + "; ".join(peaks)
 
 
+def summary_table(points: list[dict[str, Any]]) -> str:
+    """One line per point: each variant's speed-up over the official bf16 step, and the best
+    variant with its fraction of the FLOP limit and its pose deviation from fp32."""
+    names = list(dict.fromkeys(name for point in points for name in point["rows"]))
+    lines = ["| model | size | N | heads | GFLOP | " + " | ".join(names)
+             + " | fastest: of the bf16-GEMM limit, pose dev. | load avg |",
+             "|---|---:|---:|---|---:|" + "---:|" * len(names) + "---|---|"]  # fmt: skip
+    for point in points:
+        rows = point["rows"]
+        cells = []
+        for name in names:
+            speedup = rows.get(name, {}).get("speedup_vs_official_bf16")
+            cells.append("—" if speedup is None else f"{speedup:.2f}×")
+        fastest = min(rows, key=lambda name: rows[name]["best_s"])
+        best = rows[fastest]
+        fraction, deviation = best.get("fraction_of_peak_limit"), best["pose_deviation"]
+        fraction_text = "—" if fraction is None else f"{fraction:.0%}"
+        deviation_text = "—" if deviation is None else f"{deviation:.1e}"
+        gflop = "—" if point["flops"] is None else f"{point['flops'] / 1e9:.1f}"
+        lines.append(
+            f"| {point['model']} | {point['size']} | {point['keyframes']} | {point['heads']} "
+            f"| {gflop} | " + " | ".join(cells)
+            + f" | {fastest}: {fraction_text}, {deviation_text} "
+            f"| {point['load_average_start'][0]:.1f}→{point['load_average_end'][0]:.1f} |"
+        )
+    return "\n".join(lines)
+
+
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add = parser.add_argument
@@ -332,6 +363,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     add("--no-freezing", action="store_true", help="compile without Inductor's freezing")
     add("--export-large", action="store_true", help="also export Pi3 large for ORT/OpenVINO")
     add("--onnx-dir", type=Path, default=Path(tempfile.gettempdir()) / "kvtracker-runtimes-onnx")
+    add("--summary", type=Path, help="only re-print a saved JSON's summary table")
     add("--name", default="runtimes")
     add("--out-dir", type=Path, default=RESULTS)
     return parser.parse_args(argv)
@@ -339,6 +371,10 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
+    if args.summary:
+        saved: dict[str, Any] = json.loads(args.summary.read_text())
+        print(summary_table(saved["points"]))
+        return saved
     torch.set_num_threads(args.threads)
     result: dict[str, Any] = {
         "argv": list(argv) if argv is not None else None, "threads": args.threads,
@@ -369,7 +405,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         })  # fmt: skip
         del variants
     path.write_text(json.dumps(result, indent=1) + "\n")
-    print("\n" + markdown_table(result["points"]))
+    print("\n" + markdown_table(result["points"]) + "\n\n" + summary_table(result["points"]))
     print(f"notes: {result['notes']}\nwrote {path}")
     return result
 
