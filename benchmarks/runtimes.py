@@ -31,6 +31,11 @@ time repeats within a few % on a shared CPU)::
     python -m benchmarks.runtimes --models da3-small da3-base --sizes 224 308 --keyframes 1 8 32 \
         --heads camera conf
 
+With ``--threads`` above 1 set ``OMP_WAIT_POLICY=PASSIVE`` in the environment: this script loads
+torch before ``kvtracker_sdk`` could choose the policy, and spinning threads on a shared CPU make
+wall times meaningless (a 2-thread trial here gave the official step a 0.31-1.1 s spread).
+``--summary FILE`` re-prints a saved JSON's one-line-per-point summary.
+
 Writes ``benchmarks/results/<--name>.json`` and prints a markdown table.
 """
 
