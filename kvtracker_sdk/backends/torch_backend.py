@@ -24,8 +24,9 @@ it to ``device``; with ``compile`` its ``forward_track`` is replaced by a compil
 (``backends/torch_compile.py``). ``threads`` sets torch's intra-op threads, process-wide (None:
 chosen from the usable cores and the load, ``kvtracker_sdk/threads.py``); ``backend.threads``
 reports the choice. ``attention="products"`` computes the tracking step's attention over the cache
-as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights fingerprint is taken before the cast, so fp32 and bf16 backends of
-the same weights report the same ``info.fingerprint`` (their caches still differ by ``dtype``).
+as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights
+fingerprint is taken before the cast, so fp32 and bf16 backends of the same weights report the
+same ``info.fingerprint`` (their caches still differ by ``dtype``).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from kvtracker_sdk.errors import (
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
 from kvtracker_sdk.models.family import FrameOutputs, Network
-from kvtracker_sdk.models.layers.cached_attention import use_cached_kernel
+from kvtracker_sdk.models.layers.cached_attention import CACHED_KERNELS, use_cached_kernel
 from kvtracker_sdk.models.registry import family_of, load_model
 from kvtracker_sdk.threads import ThreadSettings
 from kvtracker_sdk.types import HeadSet
@@ -133,6 +134,8 @@ class TorchBackend:
         compute_dtype = _parse_dtype(dtype)
         self._threads = ThreadSettings.resolve(threads, torch.get_num_threads())  # before any work
         compile_options = _compile_options(compile)
+        if attention not in CACHED_KERNELS:
+            raise ConfigError(f"attention must be one of {CACHED_KERNELS}, got {attention!r}")
         family = family_of(model)  # ModelError for other networks, before any cast
         network = cast(Network, model)
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
@@ -142,7 +145,7 @@ class TorchBackend:
             self._model: nn.Module | None = model.to(target).eval()
         except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
             raise BackendError(f"cannot move the model to {target}: {exc}") from exc
-        use_cached_kernel(model, attention)  # ConfigError for unknown kernels
+        use_cached_kernel(model, attention)
         torch.set_num_threads(self._threads.threads)
         _log.info("torch threads", settings=self._threads.describe())
         self._compiled: CompiledTracking | None = None
