@@ -17,6 +17,7 @@ from kvtracker_sdk.errors import (
     BBoxError,
     CacheError,
     CheckpointMismatchError,
+    CompileError,
     ConfigError,
     EvaluationError,
     IllegalTransitionError,
@@ -47,6 +48,7 @@ from kvtracker_sdk.errors import (
 from kvtracker_sdk.geometry.boxes import OrientedBox
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.threads import prefer_passive_wait
 from kvtracker_sdk.types import (
     FrameResult,
     HeadSet,
@@ -60,6 +62,9 @@ from kvtracker_sdk.types import (
     TrackerSnapshot,
     TrackingState,
 )
+
+# before anything loads torch (nothing above does): OpenMP reads its wait policy once
+prefer_passive_wait()
 
 if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.base import Backend, BackendInfo, MapResult, TrackResult
@@ -135,6 +140,7 @@ __all__ = [
     "CacheLayout",
     "Camera",
     "CheckpointMismatchError",
+    "CompileError",
     "ConfigError",
     "EvalManifest",
     "EvalManyResult",

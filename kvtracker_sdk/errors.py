@@ -30,6 +30,7 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   ├── BackendMismatchError         fingerprints or cache layouts disagree
     │   ├── MappingFailedError           a mapping pass failed (the cause is ``__cause__``)
     │   ├── TrackingFailedError          a tracking pass failed or gave non-finite output
+    │   ├── CompileError                 torch.compile is unavailable or failed (no fallback asked)
     │   └── MissingDependencyError       an optional extra is not installed (names it)
     └── MapError                         map files (``.kvmap``)
         ├── MapFormatError               not a map file / malformed header
@@ -48,6 +49,7 @@ __all__ = [
     "BackendMismatchError",
     "CacheError",
     "CheckpointMismatchError",
+    "CompileError",
     "ConfigError",
     "EvaluationError",
     "IllegalTransitionError",
@@ -172,6 +174,11 @@ class OutputError(KVTrackerError, OSError):
 
 class BackendError(KVTrackerError):
     """A backend failed or cannot serve the request."""
+
+
+class CompileError(BackendError):
+    """``torch.compile`` cannot be used for the tracking step (unsupported Python or platform, no
+    C++ compiler, or the compilation failed) and no eager fallback was asked for."""
 
 
 class BackendMismatchError(BackendError):

@@ -85,6 +85,7 @@ PUBLIC_API = [
     "CacheLayout",
     "Camera",
     "CheckpointMismatchError",
+    "CompileError",
     "ConfigError",
     "EvalManifest",
     "EvalManyResult",

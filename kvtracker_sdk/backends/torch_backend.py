@@ -20,8 +20,13 @@ backend's dtype). ``track`` runs one frame (``track_batch``: several independent
 pass) against a cache while holding ``cache.lock``; the cache's content is only read.
 
 The backend owns the model it is given: it casts it to ``dtype`` (final heads stay fp32) and moves
-it to ``device``. The weights fingerprint is taken before the cast, so fp32 and bf16 backends of
-the same weights report the same ``info.fingerprint`` (their caches still differ by ``dtype``).
+it to ``device``; with ``compile`` its ``forward_track`` is replaced by a compiled one
+(``backends/torch_compile.py``). ``threads`` sets torch's intra-op threads, process-wide (None:
+chosen from the usable cores and the load, ``kvtracker_sdk/threads.py``); ``backend.threads``
+reports the choice. ``attention="products"`` computes the tracking step's attention over the cache
+as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights
+fingerprint is taken before the cast, so fp32 and bf16 backends of the same weights report the
+same ``info.fingerprint`` (their caches still differ by ``dtype``).
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from torch import nn
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
+from kvtracker_sdk.backends.torch_compile import CompiledTracking, CompileOptions, CompileReport
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import (
     BackendError,
@@ -43,12 +49,17 @@ from kvtracker_sdk.errors import (
     ImageShapeError,
     StateError,
 )
+from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.models.checkpoint_utils import weights_fingerprint as hash_weights
 from kvtracker_sdk.models.family import FrameOutputs, Network
+from kvtracker_sdk.models.layers.cached_attention import CACHED_KERNELS, use_cached_kernel
 from kvtracker_sdk.models.registry import family_of, load_model
+from kvtracker_sdk.threads import ThreadSettings
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["TorchBackend"]
+
+_log = get_logger(__name__)
 
 _DTYPES = {
     "float32": torch.float32,
@@ -82,6 +93,14 @@ def _available_device(device: torch.device | str) -> torch.device:
     return resolved
 
 
+def _compile_options(compile: bool | CompileOptions) -> CompileOptions | None:
+    if isinstance(compile, CompileOptions):
+        return compile
+    if isinstance(compile, bool):
+        return CompileOptions() if compile else None
+    raise ConfigError(f"compile must be a bool or CompileOptions, got {compile!r}")
+
+
 def _accelerations(device: torch.device) -> tuple[str, ...]:
     """Fast paths in use, detected once: fused SDPA kernels and the CPU vector ISA."""
     if device.type == "cuda":
@@ -108,8 +127,15 @@ class TorchBackend:
         device: torch.device | str = "cpu",
         model_name: str | None = None,
         weights_fingerprint: str | None = None,
+        threads: int | None = None,
+        compile: bool | CompileOptions = False,
+        attention: str = "sdpa",
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
+        self._threads = ThreadSettings.resolve(threads, torch.get_num_threads())  # before any work
+        compile_options = _compile_options(compile)
+        if attention not in CACHED_KERNELS:
+            raise ConfigError(f"attention must be one of {CACHED_KERNELS}, got {attention!r}")
         family = family_of(model)  # ModelError for other networks, before any cast
         network = cast(Network, model)
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
@@ -119,6 +145,14 @@ class TorchBackend:
             self._model: nn.Module | None = model.to(target).eval()
         except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
             raise BackendError(f"cannot move the model to {target}: {exc}") from exc
+        use_cached_kernel(model, attention)
+        torch.set_num_threads(self._threads.threads)
+        _log.info("torch threads", settings=self._threads.describe())
+        self._compiled: CompiledTracking | None = None
+        if compile_options is not None:
+            # the family's track calls model.forward_track: the instance attribute shadows it
+            self._compiled = CompiledTracking(model, compile_options)
+            cast(Any, model).forward_track = self._compiled
         self._family = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
@@ -133,7 +167,9 @@ class TorchBackend:
             layout=family.cache_layout(model),
             dtype=str(compute_dtype).removeprefix("torch."),
             device=str(self._device),
-            accelerations=_accelerations(self._device),
+            accelerations=_accelerations(self._device)
+            + (() if attention == "sdpa" else (f"cached-attention-{attention}",))
+            + (() if compile_options is None else (compile_options.describe(),)),
         )
 
     @classmethod
@@ -145,6 +181,9 @@ class TorchBackend:
         dtype: torch.dtype | str = torch.float32,
         device: torch.device | str = "cpu",
         model_name: str | None = None,
+        threads: int | None = None,
+        compile: bool | CompileOptions = False,
+        attention: str = "sdpa",
     ) -> TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
@@ -157,12 +196,25 @@ class TorchBackend:
             device=device,
             model_name=model_name or loaded.name,
             weights_fingerprint=loaded.fingerprint,
+            threads=threads,
+            compile=compile,
+            attention=attention,
         )
 
     # ------------------------------------------------------------------ Backend protocol
     @property
     def info(self) -> BackendInfo:
         return self._info
+
+    @property
+    def threads(self) -> ThreadSettings:
+        """The intra-op thread count this backend set, how it was chosen, the OpenMP wait policy."""
+        return self._threads
+
+    @property
+    def compile_report(self) -> CompileReport | None:
+        """The compiled tracking step's status and first-call time (None: not compiled)."""
+        return None if self._compiled is None else self._compiled.report
 
     def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""

@@ -45,22 +45,22 @@ def open_backend(
 ) -> Backend:
     """The backend of ``kind`` over ``weights``; typed errors for missing runtimes or weights.
 
-    ``threads`` sets torch's intra-op CPU threads (process-wide: the CLI owns the process) or
-    OpenVINO's inference threads; the ONNX backend chooses its own.
+    ``threads`` sets torch's intra-op CPU threads (process-wide: the CLI owns the process; None:
+    chosen from the free cores, ``kvtracker_sdk/threads.py``) or OpenVINO's inference threads; the
+    ONNX backend chooses its own.
     """
     dtype_name = ComputeDtype(dtype).value
     if threads is not None and threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {threads}")
     if kind is BackendKind.TORCH:
         try:
-            import torch
-
             from kvtracker_sdk.backends.torch_backend import TorchBackend
         except ImportError as exc:
             raise MissingDependencyError(f"the PyTorch backend cannot be imported: {exc}") from exc
-        if threads is not None:
-            torch.set_num_threads(threads)
-        return TorchBackend.from_pretrained(weights, dtype=dtype_name, device=device)
+        # None: the backend chooses from the free cores (kvtracker_sdk/threads.py)
+        return TorchBackend.from_pretrained(
+            weights, dtype=dtype_name, device=device, threads=threads
+        )
     if kind is BackendKind.ONNX:
         if dtype_name != ComputeDtype.FLOAT32.value:
             raise ConfigError("the ONNX backend runs the exported graphs' dtype; drop --dtype")

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from kvtracker_sdk.errors import CacheError, ConfigError
+from kvtracker_sdk.models.layers.cached_attention import cached_attention
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 
 __all__ = ["Attention", "CacheBuffers", "check_cache_buffers", "keyframe_query_mask"]
@@ -149,6 +150,8 @@ class Attention(nn.Module):
             nn.LayerNorm(self.head_dim, eps=qk_norm_eps) if qk_norm else nn.Identity()
         )
         self.proj = nn.Linear(dim, dim, bias=proj_bias)
+        # kernel of forward_track's attention over the cache (models/layers/cached_attention.py)
+        self.cached_kernel = "sdpa"
 
     def project(
         self, x: torch.Tensor, rope: RopeTable | None = None
@@ -212,15 +215,17 @@ class Attention(nn.Module):
         ``key_buffer``/``value_buffer`` [1, heads, capacity, head_dim] hold ``past_length`` cached
         tokens and must have room for ``L`` more; this call overwrites ``[past_length:
         past_length + L]`` with its own K/V (scratch) and attends over ``[:past_length + L]``.
-        ``attn_mask`` bool [L, past_length + L] (None: every query sees every token).
+        ``attn_mask`` bool [L, past_length + L] (None: every query sees every token). The
+        attention kernel is ``self.cached_kernel`` (``models/layers/cached_attention.py``).
         """
         q, k, v = self.project(x, rope)
         end = past_length + x.shape[1]
         key_buffer[:, :, past_length:end].copy_(k)
         value_buffer[:, :, past_length:end].copy_(v)
-        attended = F.scaled_dot_product_attention(
-            q, key_buffer[:, :, :end], value_buffer[:, :, :end], attn_mask=attn_mask
-        )
+        attended = cached_attention(
+            q, key_buffer[:, :, :end], value_buffer[:, :, :end], attn_mask,
+            kernel=self.cached_kernel,
+        )  # fmt: skip
         return self._merge(attended)
 
     def forward_past(
