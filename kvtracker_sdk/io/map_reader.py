@@ -34,6 +34,7 @@ from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError, 
 from kvtracker_sdk.io.map_format import MapInfo
 from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES, layer_kept
 from kvtracker_sdk.io.map_tensors import layer_tensor_names, stored_compute_dtype
+from kvtracker_sdk.positional_read import read_exactly
 
 __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
 
@@ -64,18 +65,15 @@ class MapFile:
 
     def read_into(self, buffer: memoryview, offset: int) -> None:
         """Fill ``buffer`` from byte ``offset``; MapCorruptedError if the file ends first."""
-        done = 0
-        while done < len(buffer):
-            try:
-                count = os.preadv(self.fd, [buffer[done:]], offset + done)
-            except OSError as exc:
-                raise MapIOError(f"cannot read map {self.source}: {exc}") from exc
-            if count == 0:
-                raise MapCorruptedError(
-                    f"{self.source} ended at byte {offset + done} while being loaded: it was "
-                    f"truncated or rewritten by another process (it had {self.size} bytes)"
-                )
-            done += count
+        try:
+            done = read_exactly(self.fd, buffer, offset)
+        except OSError as exc:
+            raise MapIOError(f"cannot read map {self.source}: {exc}") from exc
+        if done < len(buffer):
+            raise MapCorruptedError(
+                f"{self.source} ended at byte {offset + done} while being loaded: it was "
+                f"truncated or rewritten by another process (it had {self.size} bytes)"
+            )
 
     def read_header(self) -> bytes:
         """The raw JSON header (the bytes after the 8-byte length), checked for size only."""
@@ -168,7 +166,9 @@ def read_map_tensors(
             kept_tokens=kept_tokens,
         )
     except CacheError as exc:
-        raise MapCorruptedError(f"{file.source}: the kept token indices are invalid: {exc}") from exc
+        raise MapCorruptedError(
+            f"{file.source}: the kept token indices are invalid: {exc}"
+        ) from exc
     jobs: dict[str, list[tuple[memoryview, int]]] = {}
     for layer in layers:
         names = layer_tensor_names(layer)
@@ -178,7 +178,8 @@ def read_map_tensors(
             # for scales)
             heads = [_bytes_of(view[0, head]) for head in range(info.layout.num_heads)]
             jobs[names[part]] = [
-                (chunk, offsets[names[part]] + head * len(chunk)) for head, chunk in enumerate(heads)
+                (chunk, offsets[names[part]] + head * len(chunk))
+                for head, chunk in enumerate(heads)
             ]
     keyframe_tensors: dict[str, torch.Tensor] = {}
     for name, spec in info.tensor_schema().items():

@@ -28,6 +28,7 @@ from typing import Any
 import torch
 
 from kvtracker_sdk.errors import ModelError
+from kvtracker_sdk.positional_read import read_exactly
 
 __all__ = ["read_safetensors", "read_safetensors_keys"]
 
@@ -67,18 +68,15 @@ class _Checkpoint:
         return ModelError(f"{self.source} is not a readable .safetensors checkpoint: {why}")
 
     def read_into(self, buffer: memoryview, offset: int) -> None:
-        done = 0
-        while done < len(buffer):
-            try:
-                count = os.preadv(self.fd, [buffer[done:]], offset + done)
-            except OSError as exc:
-                raise ModelError(f"cannot read checkpoint {self.source}: {exc}") from exc
-            if count == 0:
-                raise ModelError(
-                    f"checkpoint {self.source} ended at byte {offset + done} while being read: "
-                    f"it was truncated or rewritten meanwhile (it had {self.size} bytes)"
-                )
-            done += count
+        try:
+            done = read_exactly(self.fd, buffer, offset)
+        except OSError as exc:
+            raise ModelError(f"cannot read checkpoint {self.source}: {exc}") from exc
+        if done < len(buffer):
+            raise ModelError(
+                f"checkpoint {self.source} ended at byte {offset + done} while being read: "
+                f"it was truncated or rewritten meanwhile (it had {self.size} bytes)"
+            )
 
     def _read_header(self) -> tuple[int, dict[str, dict[str, Any]]]:
         if self.size < 8:
