@@ -19,7 +19,14 @@ from typing import TypeVar
 
 import torch
 
-__all__ = ["Deviation", "absolute", "assert_sdk_no_worse", "relative", "three_ways"]
+__all__ = [
+    "Deviation",
+    "absolute",
+    "assert_as_accurate_as_autocast",
+    "assert_sdk_no_worse",
+    "relative",
+    "three_ways",
+]
 
 Model = TypeVar("Model", bound=torch.nn.Module)
 ROUNDING = 1e-3  # relative slack for fp32 run-to-run rounding (see the module docstring)
@@ -80,3 +87,19 @@ def assert_sdk_no_worse(
         assert official.worst > 0, f"{label} {quantity}: autocast did not change the output"
         report[quantity] = (sdk, official)
     return report
+
+
+@torch.no_grad()
+def assert_as_accurate_as_autocast(
+    model: Model,
+    run: Callable[[Model], dict[str, torch.Tensor]],
+    measures: dict[str, Callable[[torch.Tensor, torch.Tensor], Deviation]],
+    label: str,
+) -> None:
+    """``run(network)`` (a family's map-and-track outputs by name) the three ways, then
+    ``assert_sdk_no_worse`` on them."""
+    outputs = {}
+    for way, network, context in three_ways(model):
+        with context:
+            outputs[way] = run(network)
+    assert_sdk_no_worse(outputs, measures, label)

@@ -23,7 +23,11 @@ import torch
 from kvtracker_sdk.cache.kv_cache import CacheLayout, KVCache
 from kvtracker_sdk.models.pi3 import Pi3
 from kvtracker_sdk.types import HeadSet
-from tests.models.bf16_deviation import absolute, assert_sdk_no_worse, relative, three_ways
+from tests.models.bf16_deviation import (
+    absolute,
+    assert_as_accurate_as_autocast,
+    relative,
+)
 from tests.models.pi3.factories import random_pi3, tiny_config
 from tests.models.pi3.test_golden_parity import CASES, cache_from_map, query_image
 
@@ -82,15 +86,11 @@ def _map_and_track(model: Pi3, imgs: torch.Tensor, keyframes: int) -> dict[str, 
     }
 
 
-@torch.no_grad()
 def _assert_as_accurate_as_autocast(
     model: Pi3, imgs: torch.Tensor, keyframes: int, label: str
 ) -> None:
-    outputs = {}
-    for way, network, context in three_ways(model):
-        with context:
-            outputs[way] = _map_and_track(network, imgs, keyframes)
-    assert_sdk_no_worse(outputs, MEASURES, label)
+    run = lambda network: _map_and_track(network, imgs, keyframes)  # noqa: E731
+    assert_as_accurate_as_autocast(model, run, MEASURES, label)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
