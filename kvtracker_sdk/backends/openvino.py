@@ -40,7 +40,9 @@ class OpenVinoBackend(ExportBackend):
     of its manifest (``ModelError`` otherwise). ``device``: "cpu" (default), "gpu[:N]" or "npu"
     where OpenVINO sees one. ``precision``: "float32" (default), "bfloat16" or "float16" (the
     inference precision hint; the cache stays float32). ``threads``: CPU inference threads
-    (None: one per physical core).
+    (None: one per physical core). ``static_shapes`` (default on): track on graphs compiled for
+    the current map's exact shapes (~1.3x faster; one compile, ~0.3 s for DA3-Small, on the
+    first frame after the map's keyframe count or resolution changes; ``openvino_static``).
     """
 
     def __init__(
@@ -50,16 +52,29 @@ class OpenVinoBackend(ExportBackend):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
+        static_shapes: bool = True,
     ) -> None:
         super().__init__(folder)
         runner = OpenVinoRunner(
-            self.folder, self.manifest, device=device, precision=precision, threads=threads
+            self.folder,
+            self.manifest,
+            device=device,
+            precision=precision,
+            threads=threads,
+            static_shapes=static_shapes,
         )
         # the cache stays on the host whatever the device: OpenVINO reads host memory
         info = self.manifest.backend_info(
             backend="openvino", device="cpu", accelerations=runner.accelerations
         )
         self._serve(runner, info)
+        self._static = runner.static
+
+    @property
+    def static_compiles(self) -> tuple[tuple[str, float], ...]:
+        """The static-shape compiles so far, (graph, seconds) in order; each new map shape adds
+        one for the tracking decoder (empty with ``static_shapes=False``)."""
+        return () if self._static is None else tuple(self._static.compile_seconds)
 
     @classmethod
     def from_pretrained(
@@ -69,6 +84,7 @@ class OpenVinoBackend(ExportBackend):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
+        static_shapes: bool = True,
     ) -> OpenVinoBackend:
         """An export folder (as ``TorchBackend.from_pretrained`` takes a checkpoint).
 
@@ -76,4 +92,10 @@ class OpenVinoBackend(ExportBackend):
         openvino_backend(checkpoint)`` exports it once into a cache folder and serves the export
         (``kvtracker track --backend openvino --weights model.safetensors`` does that).
         """
-        return cls(export_folder(source), device=device, precision=precision, threads=threads)
+        return cls(
+            export_folder(source),
+            device=device,
+            precision=precision,
+            threads=threads,
+            static_shapes=static_shapes,
+        )

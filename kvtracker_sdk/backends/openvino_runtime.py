@@ -19,6 +19,10 @@ Choices, and why:
 - Inputs are shared, not copied (``share_inputs=True``): the cache's float32 buffers are
   C-contiguous and read in place, whatever their scratch capacity. Outputs are copied (the next
   inference would overwrite them).
+- ``static_shapes`` (default on): tracking passes run on graphs compiled for their exact input
+  shapes, ``past_length`` folded in (``openvino_static``: ~1.3x faster per step on DA3-Small;
+  one compile per new map shape, logged); mapping passes, whose keyframe count changes every
+  rebuild, run on the dynamic graphs.
 - One inference request per graph per thread: a tracker maps (rebuilds) on a worker thread while
   it tracks on another, and both passes run the encoder and the heads; an OpenVINO request must
   not run twice at once, a compiled model may serve several requests.
@@ -40,6 +44,7 @@ from __future__ import annotations
 import importlib
 import sys
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +53,10 @@ import numpy as np
 from kvtracker_sdk.backends.graph_runner import GraphRunner
 from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
 from kvtracker_sdk.backends.openvino_graph import read_graph
+from kvtracker_sdk.backends.openvino_static import StaticGraphs
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
+from kvtracker_sdk.models.family import FrameOutputs
+from kvtracker_sdk.types import HeadSet
 
 __all__ = ["PRECISIONS", "OpenVinoRunner", "compile_config", "import_openvino", "openvino_device"]
 
@@ -123,7 +131,8 @@ class OpenVinoRunner(GraphRunner):
     """One OpenVINO compiled model per graph of an export; mapping and tracking passes in numpy.
 
     ``device``: "cpu" (default), "gpu[:N]", "npu"; ``precision``: a key of ``PRECISIONS``;
-    ``threads``: CPU inference threads (None: one per physical core).
+    ``threads``: CPU inference threads (None: one per physical core); ``static_shapes``: track
+    on graphs compiled per input shape (``openvino_static``).
     """
 
     def __init__(
@@ -134,6 +143,7 @@ class OpenVinoRunner(GraphRunner):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
+        static_shapes: bool = True,
     ) -> None:
         super().__init__(manifest)
         ov = import_openvino()
@@ -142,22 +152,35 @@ class OpenVinoRunner(GraphRunner):
         self.device = openvino_device(device, list(core.available_devices))
         config = compile_config(self.device, precision, threads)
         try:
+            models = {
+                name: read_graph(core, folder / spec.file) for name, spec in manifest.graphs.items()
+            }
+            # static shapes: the dynamic tracking decoder is never run (a copy of its weights less)
             self._compiled = {
-                name: core.compile_model(read_graph(core, folder / spec.file), self.device, config)
-                for name, spec in manifest.graphs.items()
+                name: core.compile_model(model, self.device, config)
+                for name, model in models.items()
+                if not (static_shapes and name == "decoder_track")
             }
         except Exception as exc:  # OpenVINO raises RuntimeError/its own for unreadable graphs
             raise BackendError(f"OpenVINO cannot compile the graphs in {folder}: {exc}") from exc
-        for name, compiled in self._compiled.items():
-            self._check_names(name, compiled)
-        track = self._compiled["decoder_track"]
+        for name, model in models.items():
+            self._check_names(name, model)
+        track = self._compiled["encoder"]
         self.precision = str(track.get_property("INFERENCE_PRECISION_HINT").get_type_name())
         cpu = self.device == "CPU"
         self.threads = int(track.get_property("INFERENCE_NUM_THREADS")) if cpu else 0
         self._requests = threading.local()  # graph name -> this thread's InferRequest
+        self._models, self._compile_lock = models, threading.Lock()
+        self._compile = lambda model: core.compile_model(model, self.device, config)
+        self._tracking = threading.local()  # .active: this thread is in a tracking pass
+        self.static: StaticGraphs | None = None
+        if static_shapes:
+            tracking = {name: model for name, model in models.items() if name != "decoder_map"}
+            self.static = StaticGraphs(ov, tracking, self._compile)
 
     def _check_names(self, graph: str, compiled: Any) -> None:
-        """The compiled graph takes and returns the tensors its manifest names."""
+        """The graph (an ``openvino.Model`` as read) takes and returns the tensors its manifest
+        names."""
         inputs = {name for port in compiled.inputs for name in port.get_names()}
         outputs = {name for port in compiled.outputs for name in port.get_names()}
         missing = sorted(set(self._inputs[graph]) - inputs)
@@ -168,18 +191,42 @@ class OpenVinoRunner(GraphRunner):
     @property
     def accelerations(self) -> tuple[str, ...]:
         """What runs the graphs: device, precision chosen by the plugin, CPU threads."""
-        names = (f"openvino:{self.device}", f"precision:{self.precision}")
-        return names + ((f"threads:{self.threads}",) if self.device == "CPU" else ())
+        names: tuple[str, ...] = (f"openvino:{self.device}", f"precision:{self.precision}")
+        names += (f"threads:{self.threads}",) if self.device == "CPU" else ()
+        return names + (("static-shapes",) if self.static is not None else ())
+
+    def track(
+        self,
+        image: np.ndarray,
+        past: Sequence[tuple[np.ndarray, np.ndarray]],
+        past_length: int,
+        heads: HeadSet,
+    ) -> FrameOutputs:
+        """``GraphRunner.track``, its graphs run static-shaped when ``static_shapes`` is on."""
+        self._tracking.active = True
+        try:
+            return super().track(image, past, past_length, heads)
+        finally:
+            self._tracking.active = False
 
     def _request(self, graph: str) -> Any:
         requests: dict[str, Any] = self._requests.__dict__
         if graph not in requests:
+            with self._compile_lock:  # the dynamic tracking decoder: compiled when first needed
+                if graph not in self._compiled:
+                    self._compiled[graph] = self._compile(self._models[graph])
             requests[graph] = self._compiled[graph].create_infer_request()
         return requests[graph]
 
     def _run(self, graph: str, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         try:
-            results = self._request(graph).infer(feeds, share_inputs=True, share_outputs=False)
+            results = None
+            if self.static is not None and getattr(self._tracking, "active", False):
+                results = self.static.infer(graph, feeds)  # None: this graph runs dynamic
+            if results is None:
+                results = self._request(graph).infer(feeds, share_inputs=True, share_outputs=False)
             return {name: np.asarray(results[name]) for name in self._outputs[graph]}
+        except BackendError:
+            raise
         except Exception as exc:  # OpenVINO's exceptions are not part of our API
             raise BackendError(f"OpenVINO failed in graph {graph!r}: {exc}") from exc

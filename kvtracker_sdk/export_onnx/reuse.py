@@ -87,6 +87,7 @@ def openvino_backend(
     precision: str = "float32",
     threads: int | None = None,
     cache_dir: str | os.PathLike[str] | None = None,
+    static_shapes: bool = True,
 ) -> OpenVinoBackend:
     """An ``OpenVinoBackend`` over an export folder, or over a checkpoint exported on first use
     into ``cache_dir`` as ``onnx_backend`` does (the same folder serves both runtimes).
@@ -94,7 +95,9 @@ def openvino_backend(
         backend = openvino_backend("da3-small", precision="bfloat16", threads=2)
     """
     folder = _export_of(source, cache_dir)
-    return OpenVinoBackend(folder, device=device, precision=precision, threads=threads)
+    return OpenVinoBackend(
+        folder, device=device, precision=precision, threads=threads, static_shapes=static_shapes
+    )
 
 
 def _export_of(

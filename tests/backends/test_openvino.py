@@ -115,7 +115,25 @@ def test_info_equals_the_torch_backends(runtimes: Runtimes) -> None:
     assert info.fingerprint == reference.fingerprint  # caches and maps cross between them
     assert info.layout == reference.layout
     assert info.tokens_per_frame(112, 154) == reference.tokens_per_frame(112, 154)
-    assert info.accelerations == ("openvino:CPU", "precision:f32", "threads:1")
+    assert info.accelerations == ("openvino:CPU", "precision:f32", "threads:1", "static-shapes")
+
+
+def test_tracking_compiles_each_map_shape_once(runtimes: Runtimes) -> None:
+    """Static shapes: the tracking graphs are compiled per map shape (``past_length`` folded in,
+    here with scratch capacity past it) and give the torch step's pose (fp32, within 1e-4)."""
+    backend, query = runtimes.openvino, runtimes.golden.images[3]
+    smaller = runtimes.openvino_map.cache.clone()
+    smaller.drop_keyframes(smaller.keyframe_ids[:1])
+    assert smaller.capacity > smaller.length  # the dropped keyframe's tokens stay as scratch
+    backend.track(query, runtimes.openvino_map.cache, heads=HeadSet.CAMERA)
+    before = [graph for graph, _ in backend.static_compiles]
+    assert "decoder_track" in before  # (Pi3's encoder stays dynamic: openvino_static)
+    for _ in range(2):
+        pose = backend.track(query, smaller, heads=HeadSet.CAMERA).pose
+    after = [graph for graph, _ in backend.static_compiles]
+    assert after == [*before, "decoder_track"]  # one compile for the new length, reused
+    expected = runtimes.torch.track(query, smaller, heads=HeadSet.CAMERA).pose
+    np.testing.assert_allclose(pose, expected, atol=1e-4, rtol=0)
 
 
 def test_golden_mapping_pass(runtimes: Runtimes) -> None:
@@ -263,7 +281,7 @@ def test_a_checkpoint_is_exported_once_and_served(
     for _ in range(2):
         assert reuse.openvino_backend(weights, cache_dir=tmp_path, precision="bfloat16") == "served"
     assert len(exports) == 1 and exports[0].parent == tmp_path  # exported once
-    options = {"device": "cpu", "precision": "bfloat16", "threads": None}
+    options = {"device": "cpu", "precision": "bfloat16", "threads": None, "static_shapes": True}
     assert served == [(exports[0], options)] * 2
     assert reuse.openvino_backend(exports[0], threads=1) == "served"  # a folder is served as is
     assert served[-1] == (exports[0], {**options, "precision": "float32", "threads": 1})
