@@ -13,7 +13,11 @@ cache of N keyframes by each variant (``--variants``):
   ``torch.autocast(bfloat16)`` for bf16 (what the official Pi3/DA3 code runs);
 - ``onnx-fp32``: ``OnnxBackend`` over an export of the same weights (``--onnx-dir``; exported once);
 - ``openvino-bf16`` / ``openvino-fp32``: ``OpenVinoBackend`` over that export with the precision
-  hint, when the SDK has it and ``openvino`` imports (else the variant is reported as skipped).
+  hint and its default static shapes (every tracking graph in fp32, the encoder in bf16), when
+  the SDK has it and ``openvino`` imports (else the variant is reported as skipped);
+  ``openvino-static-bf16``: every tracking graph static (``static_shapes=True``);
+  ``openvino-dynamic-bf16`` / ``-fp32``: the dynamic graphs (``static_shapes=False``). The
+  static compiles are part of the first call.
 
 All variants of a point take turns in every round (rotating order), with two GEMM probes, a bf16
 and an fp32 ``[1024 x 1024] x [1024 x 4096]`` product: the **peak matrix-product rate measured in
@@ -72,7 +76,12 @@ HEADS = {"camera": HeadSet.CAMERA, "conf": HeadSet.CONFIDENCE}
 # <kind>-<dtype>; "products": the cached attention as two bf16 products (cached_attention.py)
 TORCH_VARIANTS = ("torch-fp32", "torch-bf16", "compile-bf16", "compile-fp32", "products-bf16",
                   "compile+products-bf16", "official-bf16", "official-fp32")  # fmt: skip
-VARIANTS = (*TORCH_VARIANTS, "onnx-fp32", "openvino-bf16", "openvino-fp32")
+OPENVINO_VARIANTS = ("openvino-bf16", "openvino-fp32", "openvino-static-bf16",
+                     "openvino-dynamic-bf16", "openvino-dynamic-fp32")  # fmt: skip
+# variant -> OpenVinoBackend(static_shapes=...); the others: the default (None)
+OPENVINO_STATIC = {"openvino-static-bf16": True, "openvino-dynamic-bf16": False,
+                   "openvino-dynamic-fp32": False}  # fmt: skip
+VARIANTS = (*TORCH_VARIANTS, "onnx-fp32", *OPENVINO_VARIANTS)
 PEAK_SHAPE = (1024, 1024, 4096)  # m, k, n of the GEMM probes
 Step = Callable[[], np.ndarray]  # one tracking step -> T_world_cam [4, 4]
 
@@ -131,7 +140,7 @@ class Variants:
         self.compiled: dict[str, CompiledTracking] = {}
         for variant in args.variants:
             kind, _, dtype = variant.rpartition("-")
-            if kind in ("official", "onnx", "openvino") or variant == "torch-fp32":
+            if kind in ("official", "onnx") or variant in OPENVINO_VARIANTS or variant == "torch-fp32":
                 continue
             model = build_model(name, DTYPES[dtype])
             if "products" in kind:
@@ -144,7 +153,7 @@ class Variants:
         self.family = family_of(self.models["fp32"])
         self.exported: dict[str, Any] = {}
         wanted = set(args.variants)
-        if wanted & {"onnx-fp32", "openvino-bf16", "openvino-fp32"}:
+        if wanted & {"onnx-fp32", *OPENVINO_VARIANTS}:
             self._export_backends(wanted)
 
     def _export_backends(self, wanted: set[str]) -> None:
@@ -162,26 +171,29 @@ class Variants:
         folder = ensure_export(probe, model, self.args.onnx_dir / self.name)
         if "onnx-fp32" in wanted:
             self.exported["onnx-fp32"] = OnnxBackend(folder, threads=self.args.threads)
-        for precision in ("bf16", "fp32"):
-            if f"openvino-{precision}" not in wanted:
+        for variant in OPENVINO_VARIANTS:
+            if variant not in wanted:
                 continue
+            precision = variant.rpartition("-")[2]
             try:
                 from kvtracker_sdk.backends.openvino import (  # type: ignore[import-not-found]
                     OpenVinoBackend,
                 )
 
-                self.exported[f"openvino-{precision}"] = OpenVinoBackend(
-                    folder, precision=DTYPE_NAMES[precision], threads=self.args.threads
-                )
+                self.exported[variant] = OpenVinoBackend(
+                    folder, precision=DTYPE_NAMES[precision], threads=self.args.threads,
+                    static_shapes=OPENVINO_STATIC.get(variant),
+                )  # fmt: skip
             except Exception as exc:  # not on this branch, or openvino missing
-                self.notes[f"openvino-{precision}"] = f"skipped: {type(exc).__name__}: {exc}"
+                self.notes[variant] = f"skipped: {type(exc).__name__}: {exc}"
 
-    def steps(self, size: int, keyframes: int, heads: HeadSet) -> dict[str, Step]:
+    def steps(self, size: int, keyframes: int, heads: HeadSet, seed: int = 0) -> dict[str, Step]:
+        """Each variant's step on the query frame of ``seed`` (0: the timed one)."""
         fp32 = self.models["fp32"]
         layout, tokens = self.family.cache_layout(fp32), fp32.tokens_per_frame(size, size)
         caches = {"fp32": random_cache(layout, torch.float32, keyframes, tokens)}
         caches["bf16"] = bf16_copy(caches["fp32"], keyframes, tokens, layout)
-        image = np.random.default_rng(0).integers(0, 256, (1, size, size, 3), dtype=np.uint8)
+        image = np.random.default_rng(seed).integers(0, 256, (1, size, size, 3), dtype=np.uint8)
         frames = torch.from_numpy(image).permute(0, 3, 1, 2).float().div(255.0)
         family = self.family
 
@@ -261,6 +273,7 @@ def run_point(variants: Variants, size: int, keyframes: int, heads: str,
         poses[name] = step()
         first_call[name] = time.perf_counter() - start
     flops = count_flops(steps["torch-fp32"]) if "torch-fp32" in steps else None
+    more_frames = pose_deviations(variants, size, keyframes, heads, args.pose_frames)
     probes = {"peak-bf16": gemm_probe(torch.bfloat16), "peak-fp32": gemm_probe(torch.float32)}
     load_start = os.getloadavg()
     timed = time_point({**steps, **probes}, args)
@@ -284,6 +297,7 @@ def run_point(variants: Variants, size: int, keyframes: int, heads: str,
             else flops / max(peak.values()) / best[name],
             "pose_deviation": None if reference is None
             else float(np.abs(poses[name] - reference).max()),
+            **more_frames.get(name, {}),
         }  # fmt: skip
     official = best.get("official-bf16")
     for row in rows.values():
@@ -294,6 +308,22 @@ def run_point(variants: Variants, size: int, keyframes: int, heads: str,
         "samples": timed["samples"], "others_cores": timed["others_cores"],
         "load_average_start": load_start, "load_average_end": os.getloadavg(),
     }  # fmt: skip
+
+
+def pose_deviations(variants: Variants, size: int, keyframes: int, heads: str,
+                    frames: int) -> dict[str, dict[str, float]]:  # fmt: skip
+    """Per variant, the largest and the mean pose deviation from ``torch-fp32`` over ``frames``
+    query frames (seeds 0..frames-1; one frame's deviation varies 2-3x between frames)."""
+    deviations: dict[str, list[float]] = {}
+    for seed in range(frames if frames > 1 else 0):
+        steps = variants.steps(size, keyframes, HEADS[heads], seed=seed)
+        if "torch-fp32" not in steps:
+            return {}
+        reference = steps["torch-fp32"]()
+        for name, step in steps.items():
+            deviations.setdefault(name, []).append(float(np.abs(step() - reference).max()))
+    return {name: {"pose_deviation_max": max(d), "pose_deviation_mean": statistics.fmean(d),
+                   "pose_frames": len(d)} for name, d in deviations.items()}  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- output
@@ -315,12 +345,20 @@ def markdown_table(points: list[dict[str, Any]]) -> str:
                 f"| {gflop} | {name} | {row['best_s']:.4f} | {row['median_s']:.4f} "
                 f"| {fmt(row['limit_s'], '.4f')} | {fmt(row['fraction_of_limit'], '.0%')} "
                 f"| {fmt(row['speedup_vs_official_bf16'], '.2f')}× "
-                f"| {fmt(row['pose_deviation'], '.1e')} | {load} |"
+                f"| {fmt(row['pose_deviation'], '.1e')}{more_frames_text(row)} | {load} |"
             )
     peaks = [f"{p['model']} {p['size']} N={p['keyframes']}: bf16 "
              f"{p['peak_flops_per_s']['bf16'] / 1e9:.0f}, fp32 "
              f"{p['peak_flops_per_s']['fp32'] / 1e9:.0f} GFLOP/s" for p in points]  # fmt: skip
     return "\n".join(lines) + "\n\nGEMM peak in the same rounds: " + "; ".join(peaks)
+
+
+def more_frames_text(row: dict[str, Any]) -> str:
+    """" (K frames: max / mean)" when ``--pose-frames`` measured them."""
+    if "pose_deviation_max" not in row:
+        return ""
+    return (f" ({row['pose_frames']} frames: {row['pose_deviation_max']:.1e} max / "
+            f"{row['pose_deviation_mean']:.1e} mean)")  # fmt: skip
 
 
 def summary_table(points: list[dict[str, Any]]) -> str:
@@ -362,6 +400,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         default=["torch-fp32", "torch-bf16", "compile-bf16", "official-bf16", "official-fp32",
                  "onnx-fp32", "openvino-bf16"])  # fmt: skip
     add("--rounds", type=int, default=5, help="timed rounds per point")
+    add("--pose-frames", type=int, default=1,
+        help="also the pose deviation's max and mean over this many query frames")
     add("--warmup", type=int, default=1, help="untimed rounds per point after the first calls")
     add("--threads", type=int, default=1)
     add("--clock", choices=["cpu", "wall"], default="cpu")
@@ -407,6 +447,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             f"{name} {variant}": {"status": c.report.status, "first_call_s": c.report.first_call_s,
                                 "cache_dir": str(c.report.cache_dir)}
             for variant, c in variants.compiled.items()
+        })  # fmt: skip
+        result.setdefault("openvino_static_compiles", {}).update({
+            f"{name} {variant}": backend.static_compiles for variant, backend
+            in variants.exported.items() if hasattr(backend, "static_compiles")
         })  # fmt: skip
         del variants
     path.write_text(json.dumps(result, indent=1) + "\n")

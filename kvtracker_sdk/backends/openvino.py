@@ -26,6 +26,7 @@ openvino is imported when a backend is created (``MissingDependencyError`` names
 from __future__ import annotations
 
 import os
+from collections.abc import Collection
 
 from kvtracker_sdk.backends.export_backend import ExportBackend, export_folder
 from kvtracker_sdk.backends.openvino_runtime import OpenVinoRunner
@@ -40,9 +41,13 @@ class OpenVinoBackend(ExportBackend):
     of its manifest (``ModelError`` otherwise). ``device``: "cpu" (default), "gpu[:N]" or "npu"
     where OpenVINO sees one. ``precision``: "float32" (default), "bfloat16" or "float16" (the
     inference precision hint; the cache stays float32). ``threads``: CPU inference threads
-    (None: one per physical core). ``static_shapes`` (default on): track on graphs compiled for
-    the current map's exact shapes (~1.3x faster; one compile, ~0.3 s for DA3-Small, on the
-    first frame after the map's keyframe count or resolution changes; ``openvino_static``).
+    (None: one per physical core). ``static_shapes``: track on graphs compiled for the
+    current map's exact shapes (``openvino_static``; one compile, ~0.3 s for DA3-Small's
+    decoder, on the first frame after the map's keyframe count or resolution changes): None
+    (default) = every tracking graph in float32, the encoder only with a bf16/f16 hint (the
+    static decoder's bf16 poses deviate more; ``openvino_runtime.static_graphs``); True = every
+    tracking graph (fastest: DA3-Small bf16 step 1.15x the encoder-only one); False = none; or
+    graph names.
     """
 
     def __init__(
@@ -52,7 +57,7 @@ class OpenVinoBackend(ExportBackend):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
-        static_shapes: bool = True,
+        static_shapes: bool | Collection[str] | None = None,
     ) -> None:
         super().__init__(folder)
         runner = OpenVinoRunner(
@@ -84,7 +89,7 @@ class OpenVinoBackend(ExportBackend):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
-        static_shapes: bool = True,
+        static_shapes: bool | Collection[str] | None = None,
     ) -> OpenVinoBackend:
         """An export folder (as ``TorchBackend.from_pretrained`` takes a checkpoint).
 

@@ -19,10 +19,12 @@ Choices, and why:
 - Inputs are shared, not copied (``share_inputs=True``): the cache's float32 buffers are
   C-contiguous and read in place, whatever their scratch capacity. Outputs are copied (the next
   inference would overwrite them).
-- ``static_shapes`` (default on): tracking passes run on graphs compiled for their exact input
-  shapes, ``past_length`` folded in (``openvino_static``: ~1.3x faster per step on DA3-Small;
-  one compile per new map shape, logged); mapping passes, whose keyframe count changes every
-  rebuild, run on the dynamic graphs.
+- ``static_shapes``: tracking passes run on graphs compiled for their exact input shapes,
+  ``past_length`` folded in (``openvino_static``: DA3-Small's bf16 step 1.15x faster with the
+  encoder static, 1.3x with every tracking graph; one compile per new map shape, logged);
+  by default every tracking graph in float32 and the encoder only with a bf16/f16 hint
+  (``static_graphs``). Mapping passes, whose keyframe count changes every rebuild, run on the
+  dynamic graphs.
 - One inference request per graph per thread: a tracker maps (rebuilds) on a worker thread while
   it tracks on another, and both passes run the encoder and the heads; an OpenVINO request must
   not run twice at once, a compiled model may serve several requests.
@@ -44,7 +46,7 @@ from __future__ import annotations
 import importlib
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +60,14 @@ from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyErr
 from kvtracker_sdk.models.family import FrameOutputs
 from kvtracker_sdk.types import HeadSet
 
-__all__ = ["PRECISIONS", "OpenVinoRunner", "compile_config", "import_openvino", "openvino_device"]
+__all__ = [
+    "PRECISIONS",
+    "OpenVinoRunner",
+    "compile_config",
+    "import_openvino",
+    "openvino_device",
+    "static_graphs",
+]
 
 # SDK dtype name -> OpenVINO's inference precision hint
 PRECISIONS = {"float32": "f32", "bfloat16": "bf16", "float16": "f16"}
@@ -127,12 +136,33 @@ def compile_config(device: str, precision: str, threads: int | None) -> dict[str
     return config
 
 
+def static_graphs(
+    static_shapes: bool | Collection[str] | None, manifest: OnnxManifest, precision: str
+) -> set[str]:
+    """The graphs tracking runs static-shaped: True = every graph but ``decoder_map`` (mapping
+    stays dynamic), False = none, the names given (``ConfigError`` for another name), or None
+    (default) = every one in float32, the encoder only with a bf16/f16 hint: the static decoder
+    computes bf16 differently (more of it fused in bf16), and its poses deviated more from fp32
+    (DA3-Small, 8 frames: mean 9.4e-3 vs 8.8e-3 dynamic, 6.9e-3 encoder-only; see
+    ``benchmarks/results/runtimes_da3_small_224_n8_openvino_static_run*.json``)."""
+    tracking = {name for name in manifest.graphs if name != "decoder_map"}
+    if static_shapes is None:
+        return tracking if precision == "float32" else {"encoder"}
+    if isinstance(static_shapes, bool):
+        return tracking if static_shapes else set()
+    unknown = sorted(set(static_shapes) - tracking)
+    if unknown:
+        raise ConfigError(f"static_shapes names {unknown}; tracking graphs: {sorted(tracking)}")
+    return set(static_shapes)
+
+
 class OpenVinoRunner(GraphRunner):
     """One OpenVINO compiled model per graph of an export; mapping and tracking passes in numpy.
 
     ``device``: "cpu" (default), "gpu[:N]", "npu"; ``precision``: a key of ``PRECISIONS``;
     ``threads``: CPU inference threads (None: one per physical core); ``static_shapes``: track
-    on graphs compiled per input shape (``openvino_static``).
+    on graphs compiled per input shape (``openvino_static``; ``static_graphs``: None = by
+    precision, True, False, or graph names).
     """
 
     def __init__(
@@ -143,7 +173,7 @@ class OpenVinoRunner(GraphRunner):
         device: str = "cpu",
         precision: str = "float32",
         threads: int | None = None,
-        static_shapes: bool = True,
+        static_shapes: bool | Collection[str] | None = None,
     ) -> None:
         super().__init__(manifest)
         ov = import_openvino()
@@ -151,6 +181,7 @@ class OpenVinoRunner(GraphRunner):
         core = ov.Core()
         self.device = openvino_device(device, list(core.available_devices))
         config = compile_config(self.device, precision, threads)
+        static = static_graphs(static_shapes, manifest, precision)
         try:
             models = {
                 name: read_graph(core, folder / spec.file) for name, spec in manifest.graphs.items()
@@ -159,7 +190,7 @@ class OpenVinoRunner(GraphRunner):
             self._compiled = {
                 name: core.compile_model(model, self.device, config)
                 for name, model in models.items()
-                if not (static_shapes and name == "decoder_track")
+                if name not in static or name != "decoder_track"
             }
         except Exception as exc:  # OpenVINO raises RuntimeError/its own for unreadable graphs
             raise BackendError(f"OpenVINO cannot compile the graphs in {folder}: {exc}") from exc
@@ -174,9 +205,8 @@ class OpenVinoRunner(GraphRunner):
         self._compile = lambda model: core.compile_model(model, self.device, config)
         self._tracking = threading.local()  # .active: this thread is in a tracking pass
         self.static: StaticGraphs | None = None
-        if static_shapes:
-            tracking = {name: model for name, model in models.items() if name != "decoder_map"}
-            self.static = StaticGraphs(ov, tracking, self._compile)
+        if static:
+            self.static = StaticGraphs(ov, {name: models[name] for name in static}, self._compile)
 
     def _check_names(self, graph: str, compiled: Any) -> None:
         """The graph (an ``openvino.Model`` as read) takes and returns the tensors its manifest
@@ -193,7 +223,11 @@ class OpenVinoRunner(GraphRunner):
         """What runs the graphs: device, precision chosen by the plugin, CPU threads."""
         names: tuple[str, ...] = (f"openvino:{self.device}", f"precision:{self.precision}")
         names += (f"threads:{self.threads}",) if self.device == "CPU" else ()
-        return names + (("static-shapes",) if self.static is not None else ())
+        if self.static is None:
+            return names
+        static = sorted(self.static.graphs)
+        everything = len(static) == len(self._inputs) - 1  # all but decoder_map
+        return names + ("static-shapes" if everything else f"static:{','.join(static)}",)
 
     def track(
         self,

@@ -101,6 +101,7 @@ class StaticGraphs:
         if per_graph < 1:
             raise ValueError(f"per_graph must be >= 1, got {per_graph}")
         self._ov, self._models, self._compile, self.per_graph = ov, models, compile, per_graph
+        self.graphs = frozenset(models)
         self._cache: dict[str, OrderedDict[Signature, _Compiled]] = {
             n: OrderedDict() for n in models
         }
@@ -112,7 +113,7 @@ class StaticGraphs:
         """Run ``graph`` on ``feeds`` through its compile for their signature; the request's
         results (valid until this thread's next call on the same compile), or None when the
         graph does not compile static-shaped (the caller runs the dynamic one)."""
-        entry = self._entry(graph, feeds)
+        entry = self._entry(graph, feeds) if graph in self._models else None
         if entry is None:
             return None
         inputs = {name: array for name, array in feeds.items() if name not in entry.constants}

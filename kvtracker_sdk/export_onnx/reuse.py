@@ -14,7 +14,7 @@ checked against PyTorch); later calls only hash the weights.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -87,7 +87,7 @@ def openvino_backend(
     precision: str = "float32",
     threads: int | None = None,
     cache_dir: str | os.PathLike[str] | None = None,
-    static_shapes: bool = True,
+    static_shapes: bool | Collection[str] | None = None,
 ) -> OpenVinoBackend:
     """An ``OpenVinoBackend`` over an export folder, or over a checkpoint exported on first use
     into ``cache_dir`` as ``onnx_backend`` does (the same folder serves both runtimes).

@@ -26,6 +26,7 @@ from kvtracker_sdk.backends.base import Backend, MapResult
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME
 from kvtracker_sdk.backends.openvino import OpenVinoBackend
+from kvtracker_sdk.backends.openvino_runtime import static_graphs
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError, ModelError, StateError
 from kvtracker_sdk.geometry.se3 import invert_rigid
@@ -136,6 +137,16 @@ def test_tracking_compiles_each_map_shape_once(runtimes: Runtimes) -> None:
     np.testing.assert_allclose(pose, expected, atol=1e-4, rtol=0)
 
 
+def test_static_shapes_choose_the_tracking_graphs(runtimes: Runtimes) -> None:
+    manifest, every = runtimes.openvino.manifest, {"encoder", "decoder_track", "head_camera"}
+    assert static_graphs(None, manifest, "float32") >= every  # fp32: every tracking graph
+    assert static_graphs(None, manifest, "bfloat16") == {"encoder"}  # bf16: see static_graphs
+    assert static_graphs(False, manifest, "float32") == set()
+    assert "decoder_map" not in static_graphs(True, manifest, "bfloat16")
+    with pytest.raises(ConfigError, match="decoder_map"):
+        static_graphs({"decoder_map"}, manifest, "float32")
+
+
 def test_golden_mapping_pass(runtimes: Runtimes) -> None:
     mapped, expected = runtimes.openvino_map, runtimes.golden
     assert mapped.poses.dtype == np.float64 and mapped.poses.shape == (3, 4, 4)
@@ -187,6 +198,7 @@ def test_bfloat16_hint_keeps_a_float32_cache(onnx_exports: Callable[[str], OnnxE
     if "BF16" in openvino.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES"):
         assert "precision:bf16" in fast.info.accelerations
         assert deviation > 1e-5  # the hint took effect: bf16 products round differently
+    assert "static:encoder" in fast.info.accelerations  # bf16: the decoder stays dynamic
     fast.close()
     fast.close()  # idempotent
     with pytest.raises(StateError, match="this OpenVinoBackend is closed"):
@@ -281,7 +293,7 @@ def test_a_checkpoint_is_exported_once_and_served(
     for _ in range(2):
         assert reuse.openvino_backend(weights, cache_dir=tmp_path, precision="bfloat16") == "served"
     assert len(exports) == 1 and exports[0].parent == tmp_path  # exported once
-    options = {"device": "cpu", "precision": "bfloat16", "threads": None, "static_shapes": True}
+    options = {"device": "cpu", "precision": "bfloat16", "threads": None, "static_shapes": None}
     assert served == [(exports[0], options)] * 2
     assert reuse.openvino_backend(exports[0], threads=1) == "served"  # a folder is served as is
     assert served[-1] == (exports[0], {**options, "precision": "float32", "threads": 1})
