@@ -18,7 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-__all__ = ["read_graph"]
+__all__ = ["folds_pillow_resize", "read_graph"]
 
 
 def _is_antialiased_cubic(node: Any) -> bool:
@@ -41,3 +41,13 @@ def read_graph(core: Any, path: Path) -> Any:
         if _is_antialiased_cubic(node):
             node.set_attribute("mode", "bicubic_pillow")
     return model
+
+
+def folds_pillow_resize(model: Any) -> bool:
+    """``model`` has a ``bicubic_pillow`` resize (Pi3's encoder): OpenVINO 2026.4 cannot compile
+    it static-shaped (its constant folding wants exactly two axes), so it stays dynamic."""
+    return any(
+        node.get_type_name() == "Interpolate"
+        and node.get_attributes().get("mode") == "bicubic_pillow"
+        for node in model.get_ordered_ops()
+    )

@@ -54,7 +54,7 @@ import numpy as np
 
 from kvtracker_sdk.backends.graph_runner import GraphRunner
 from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
-from kvtracker_sdk.backends.openvino_graph import read_graph
+from kvtracker_sdk.backends.openvino_graph import folds_pillow_resize, read_graph
 from kvtracker_sdk.backends.openvino_static import StaticGraphs
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
 from kvtracker_sdk.models.family import FrameOutputs
@@ -186,6 +186,7 @@ class OpenVinoRunner(GraphRunner):
             models = {
                 name: read_graph(core, folder / spec.file) for name, spec in manifest.graphs.items()
             }
+            static -= {name for name in static if folds_pillow_resize(models[name])}
             # static shapes: the dynamic tracking decoder is never run (a copy of its weights less)
             self._compiled = {
                 name: core.compile_model(model, self.device, config)

@@ -17,9 +17,10 @@ signature and folded into the graph as constants. The graphs are the ones read f
 export (no compiled-blob cache on disk, so nothing skips the manifest's sha256 check).
 
 A graph OpenVINO cannot compile static-shaped runs dynamic from then on (``infer`` returns None;
-logged once as ``openvino.static_unsupported``): Pi3's encoder is one in OpenVINO 2026.4, whose
-constant folding of its ``bicubic_pillow`` pos-embed resize (``openvino_graph``) fails ("For
-Pillow based modes exactly two (HW) axes need to be provided"); its decoder is static.
+logged once as ``openvino.static_unsupported``). Pi3's encoder would be one in OpenVINO 2026.4:
+the constant folding of its ``bicubic_pillow`` pos-embed resize (``openvino_graph``) fails ("For
+Pillow based modes exactly two (HW) axes need to be provided"), so the runner leaves it out
+(``folds_pillow_resize``) instead of paying a failed compile; Pi3's decoder is static.
 """
 
 from __future__ import annotations

@@ -116,7 +116,9 @@ def test_info_equals_the_torch_backends(runtimes: Runtimes) -> None:
     assert info.fingerprint == reference.fingerprint  # caches and maps cross between them
     assert info.layout == reference.layout
     assert info.tokens_per_frame(112, 154) == reference.tokens_per_frame(112, 154)
-    assert info.accelerations == ("openvino:CPU", "precision:f32", "threads:1", "static-shapes")
+    assert info.accelerations[:3] == ("openvino:CPU", "precision:f32", "threads:1")
+    static = {"da3": "static-shapes", "pi3": "static:decoder_track,head_camera,head_conf,head_points"}
+    assert info.accelerations[3:] == (static[runtimes.family],)  # Pi3's encoder stays dynamic
 
 
 def test_tracking_compiles_each_map_shape_once(runtimes: Runtimes) -> None:
