@@ -29,22 +29,11 @@ Choices, and why:
   it tracks on another, and both passes run the encoder and the heads; an OpenVINO request must
   not run twice at once, a compiled model may serve several requests.
 
-Telemetry off: ``import openvino`` itself initialises OpenVINO's telemetry and sends an
-"import" event to Google Analytics (``openvino/tools/ovc/__init__.py``, with the opt-in dialog
-disabled: it sends unless the user opted out with ``opt_in_out --opt_out``), and writes a client
-id under ``~/intel``. ``import_openvino`` imports openvino with ``openvino_telemetry`` hidden
-from the import system, so that OpenVINO takes its own no-op stub (the path it takes when the
-telemetry package is not installed); the package is visible again afterwards. The runtime itself
-(``Core``, ``read_model``, ``compile_model``, inference) collects nothing. If the application
-imported openvino before, the event was sent then: this SDK cannot take it back.
-``tests/backends/test_openvino_network.py`` checks that importing, compiling and running make
-no telemetry call and open no socket that is not loopback.
+OpenVINO is imported (telemetry off) and its one ``Core`` kept by ``openvino_core``.
 """
 
 from __future__ import annotations
 
-import importlib
-import sys
 import threading
 from collections.abc import Collection, Sequence
 from pathlib import Path
@@ -54,6 +43,7 @@ import numpy as np
 
 from kvtracker_sdk.backends.graph_runner import GraphRunner
 from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
+from kvtracker_sdk.backends.openvino_core import import_openvino, shared_core
 from kvtracker_sdk.backends.openvino_graph import folds_pillow_resize, read_graph
 from kvtracker_sdk.backends.openvino_static import StaticGraphs
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
@@ -64,7 +54,6 @@ __all__ = [
     "PRECISIONS",
     "OpenVinoRunner",
     "compile_config",
-    "import_openvino",
     "openvino_device",
     "static_graphs",
 ]
@@ -74,38 +63,11 @@ PRECISIONS = {"float32": "f32", "bfloat16": "bf16", "float16": "f16"}
 _DEVICES = {"cpu": "CPU", "gpu": "GPU", "npu": "NPU"}
 
 
-_TELEMETRY = "openvino_telemetry"
-_ABSENT = object()
-_import_lock = threading.Lock()
-
-
-def import_openvino() -> Any:
-    """The ``openvino`` module imported without its telemetry (see the module docstring), or
-    ``MissingDependencyError`` naming the ``[openvino]`` extra."""
-    with _import_lock:
-        first = "openvino" not in sys.modules
-        saved = sys.modules.get(_TELEMETRY, _ABSENT)
-        if first:
-            sys.modules[_TELEMETRY] = None  # type: ignore[assignment]  # import -> ImportError
-        try:
-            return importlib.import_module("openvino")
-        except ImportError as exc:
-            raise MissingDependencyError(
-                "the OpenVINO backend needs openvino: pip install 'kvtracker-sdk[openvino]' "
-                f"({exc})"
-            ) from exc
-        finally:
-            if first and saved is _ABSENT:
-                sys.modules.pop(_TELEMETRY, None)
-            elif first:
-                sys.modules[_TELEMETRY] = saved  # type: ignore[assignment]
-
-
 def openvino_device(device: str, available: list[str]) -> str:
     """SDK device name ("cpu", "gpu[:N]", "npu") -> OpenVINO's ("CPU", "GPU.N", "NPU").
 
     ``ConfigError`` for an unknown name; ``MissingDependencyError`` when OpenVINO sees no such
-    device here (``available``: ``Core().available_devices``; a GPU or NPU needs its driver).
+    device here (``available``: the Core's ``available_devices``; a GPU or NPU needs its driver).
     """
     kind, _, index = device.lower().partition(":")
     if kind not in _DEVICES or (index and not index.isdigit()):
@@ -178,7 +140,7 @@ class OpenVinoRunner(GraphRunner):
         super().__init__(manifest)
         ov = import_openvino()
         folder = Path(folder)
-        core = ov.Core()
+        core = shared_core()
         self.device = openvino_device(device, list(core.available_devices))
         config = compile_config(self.device, precision, threads)
         static = static_graphs(static_shapes, manifest, precision)

@@ -186,9 +186,9 @@ def test_golden_query_on_a_map_of_each_runtime(runtimes: Runtimes, heads: HeadSe
 def test_bfloat16_hint_keeps_a_float32_cache(onnx_exports: Callable[[str], OnnxExport]) -> None:
     """DA3 (the CPU model; Pi3 runs bf16 in ``test_openvino_network.py``): a whole bf16 pass,
     mapping and tracking, against the golden fp32 query."""
-    import openvino
-
     dev_dependency("openvino")
+    from kvtracker_sdk.backends.openvino_core import shared_core
+
     export, case = onnx_exports("da3"), golden("da3")
     fast = OpenVinoBackend.from_pretrained(export.folder, precision="bfloat16", threads=1)
     assert fast.info.dtype == "float32"
@@ -197,7 +197,7 @@ def test_bfloat16_hint_keeps_a_float32_cache(onnx_exports: Callable[[str], OnnxE
     assert str(mapped.cache.dtype) == "torch.float32"  # shared with every fp32 backend
     deviation = np.abs(fast.track(case.images[3], mapped.cache).pose - case.query_pose).max()
     assert deviation < 0.05
-    if "BF16" in openvino.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES"):
+    if "BF16" in shared_core().get_property("CPU", "OPTIMIZATION_CAPABILITIES"):
         assert "precision:bf16" in fast.info.accelerations
         assert deviation > 1e-5  # the hint took effect: bf16 products round differently
     assert "static:encoder" in fast.info.accelerations  # bf16: the decoder stays dynamic
