@@ -17,7 +17,7 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 ``precision`` "float32" (default) computes the export's function within float rounding;
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
 ``openvino_runtime``) that grows with the map: at 32 keyframes DA3-Small's poses deviated about
-twice as much as PyTorch's bf16 (Pi3 `large`'s did not), and "float32" was nearly as fast
+twice as much as PyTorch's bf16 (Pi3 ``large``'s did not), and "float32" was nearly as fast
 (README, model choice). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
 
