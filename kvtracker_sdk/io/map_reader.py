@@ -33,7 +33,7 @@ from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError, MapIOError
 from kvtracker_sdk.io.map_format import MapInfo
 from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES, layer_kept
-from kvtracker_sdk.io.map_tensors import layer_tensor_names, stored_compute_dtype
+from kvtracker_sdk.io.map_tensors import empty_cache, layer_tensor_names
 from kvtracker_sdk.positional_read import read_exactly
 
 __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
@@ -157,14 +157,7 @@ def read_map_tensors(
             if verify and digest != info.tensor_sha256.get(layer_kept(layer)):
                 raise MapCorruptedError(f"{file.source}: checksum mismatch in {layer_kept(layer)}")
     try:
-        cache = KVCache.preallocated(
-            info.layout,
-            info.tokens_per_frame,
-            info.cache_keyframe_ids,
-            dtype=stored_compute_dtype(info),
-            storage=info.dtype,
-            kept_tokens=kept_tokens,
-        )
+        cache = empty_cache(info, kept_tokens)
     except CacheError as exc:
         raise MapCorruptedError(
             f"{file.source}: the kept token indices are invalid: {exc}"

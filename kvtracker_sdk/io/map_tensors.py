@@ -45,6 +45,7 @@ from kvtracker_sdk.io.map_schema import (
 
 __all__ = [
     "check_digests",
+    "empty_cache",
     "keyframe_problem",
     "layer_tensor_names",
     "map_from_parts",
@@ -255,13 +256,9 @@ def map_from_tensors(
     the cache is then converted (one more copy, only when they differ from the file's).
     """
     try:
-        cache = KVCache.preallocated(
-            info.layout,
-            info.tokens_per_frame,
-            info.cache_keyframe_ids,
-            dtype=stored_compute_dtype(info),
-            storage=info.dtype,
-            kept_tokens=None
+        cache = empty_cache(
+            info,
+            None
             if info.layer_lengths is None
             else [tensors[layer_kept(i)] for i in range(info.layout.num_layers)],
         )
@@ -272,6 +269,20 @@ def map_from_tensors(
     except (CacheError, RuntimeError) as exc:  # the schema check makes this unreachable
         raise MapCorruptedError(f"{source}: the K/V tensors do not form a cache: {exc}") from exc
     return map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
+
+
+def empty_cache(info: MapInfo, kept_tokens: list[torch.Tensor] | None) -> KVCache:
+    """The preallocated CPU cache a map file's K/V are copied into: the file's storage and
+    compute dtype, and per layer the kept token indices of a pruned map (None: not pruned);
+    ``CacheError`` when those indices are invalid."""
+    return KVCache.preallocated(
+        info.layout,
+        info.tokens_per_frame,
+        info.cache_keyframe_ids,
+        dtype=stored_compute_dtype(info),
+        storage=info.dtype,
+        kept_tokens=kept_tokens,
+    )
 
 
 def map_from_parts(
