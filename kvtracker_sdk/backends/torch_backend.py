@@ -31,6 +31,7 @@ same ``info.fingerprint`` (their caches still differ by ``dtype``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from typing import Any, cast
@@ -40,6 +41,7 @@ import torch
 from torch import nn
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
+from kvtracker_sdk.backends.cuda_graph_step import GraphOptions, GraphReport, GraphTracking
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
 from kvtracker_sdk.backends.torch_compile import CompiledTracking, CompileOptions, CompileReport
 from kvtracker_sdk.cache.kv_cache import KVCache
@@ -101,6 +103,40 @@ def _compile_options(compile: bool | CompileOptions) -> CompileOptions | None:
     raise ConfigError(f"compile must be a bool or CompileOptions, got {compile!r}")
 
 
+def _graph_options(cuda_graph: bool | GraphOptions) -> GraphOptions | None:
+    if isinstance(cuda_graph, GraphOptions):
+        return cuda_graph
+    if isinstance(cuda_graph, bool):
+        return GraphOptions() if cuda_graph else None
+    raise ConfigError(f"cuda_graph must be a bool or GraphOptions, got {cuda_graph!r}")
+
+
+class _CudaStreams:
+    """Tracking on a high-priority CUDA stream, mapping on a low-priority one.
+
+    Why: a rebuild's mapping pass runs on the mapping worker while the tracker keeps tracking. On
+    one stream (the default, shared by all threads) the GPU runs kernels in launch order, so a
+    tracking step launched during a rebuild waits for every mapping kernel queued before it; on
+    two streams the scheduler interleaves them and prefers the tracking stream's blocks. Both
+    passes end in a host copy of their outputs (a synchronisation), so a cache made on the mapping
+    stream is complete before a tracking step reads it, and a pass's tensors are idle when freed.
+    """
+
+    def __init__(self, device: torch.device) -> None:
+        # lower numbers run first; torch maps one past the device's range to its highest
+        self.streams = {
+            "tracking": torch.cuda.Stream(device=device, priority=-8),
+            "mapping": torch.cuda.Stream(device=device, priority=0),
+        }
+
+    @classmethod
+    def make(cls, device: torch.device, enabled: bool) -> _CudaStreams | None:
+        return cls(device) if enabled and device.type == "cuda" else None
+
+    def use(self, role: str) -> contextlib.AbstractContextManager[object]:
+        return torch.cuda.stream(self.streams[role])
+
+
 def _accelerations(device: torch.device) -> tuple[str, ...]:
     """Fast paths in use, detected once: fused SDPA kernels and the CPU vector ISA."""
     if device.type == "cuda":
@@ -130,8 +166,13 @@ class TorchBackend:
         threads: int | None = None,
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
+        cuda_graph: bool | GraphOptions = False,
+        mapping_stream: bool = True,
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
+        graph_options = _graph_options(cuda_graph)
+        if graph_options is not None and compile is not False:
+            raise ConfigError("choose compile or cuda_graph, not both")
         self._threads = ThreadSettings.resolve(threads, torch.get_num_threads())  # before any work
         compile_options = _compile_options(compile)
         if attention not in CACHED_KERNELS:
@@ -153,9 +194,14 @@ class TorchBackend:
             # the family's track calls model.forward_track: the instance attribute shadows it
             self._compiled = CompiledTracking(model, compile_options)
             cast(Any, model).forward_track = self._compiled
+        self._graphs: GraphTracking | None = None
+        if graph_options is not None:
+            self._graphs = GraphTracking(model, family.cache_layout(model), graph_options)
+            cast(Any, model).forward_track = self._graphs
         self._family = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
+        self._streams = _CudaStreams.make(self._device, mapping_stream)
         self._info = BackendInfo(
             backend="torch",
             model=model_name or family.model_name(model),
@@ -169,7 +215,9 @@ class TorchBackend:
             device=str(self._device),
             accelerations=_accelerations(self._device)
             + (() if attention == "sdpa" else (f"cached-attention-{attention}",))
-            + (() if compile_options is None else (compile_options.describe(),)),
+            + (() if compile_options is None else (compile_options.describe(),))
+            + (() if graph_options is None else (graph_options.describe(),))
+            + (() if self._streams is None else ("cuda-mapping-stream",)),
         )
 
     @classmethod
@@ -184,6 +232,8 @@ class TorchBackend:
         threads: int | None = None,
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
+        cuda_graph: bool | GraphOptions = False,
+        mapping_stream: bool = True,
     ) -> TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
@@ -199,6 +249,8 @@ class TorchBackend:
             threads=threads,
             compile=compile,
             attention=attention,
+            cuda_graph=cuda_graph,
+            mapping_stream=mapping_stream,
         )
 
     # ------------------------------------------------------------------ Backend protocol
@@ -216,13 +268,18 @@ class TorchBackend:
         """The compiled tracking step's status and first-call time (None: not compiled)."""
         return None if self._compiled is None else self._compiled.report
 
+    @property
+    def graph_report(self) -> GraphReport | None:
+        """The CUDA-graph step's captures, replays and eager calls (None: not enabled)."""
+        return None if self._graphs is None else self._graphs.report
+
     def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
         model = self._live_model()
         frames = self._to_tensor(images)
         check_masks(masks, images)
         start = time.perf_counter()
-        with torch.no_grad():
+        with torch.no_grad(), self._on_stream("mapping"):
             mapped = self._family.map(model, frames)
         outputs = mapped.frames
         return MapResult.of_pass(
@@ -252,10 +309,11 @@ class TorchBackend:
     ) -> list[TrackResult]:
         """Track independent frames uint8 [B, H, W, 3] against ``cache`` in one pass."""
         model = self._live_model()
-        frames = self._to_tensor(images)
-        check_cache(cache, self._info, frames.shape[-2], frames.shape[-1])
+        images = check_frames(images, self._info.patch_size)
+        check_cache(cache, self._info, images.shape[1], images.shape[2])
         start = time.perf_counter()
-        with cache.lock, torch.no_grad():
+        with cache.lock, torch.no_grad(), self._on_stream("tracking"):
+            frames = self._upload(images)
             output = self._family.track(model, frames, cache, heads)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         timings = {"track": elapsed_ms / frames.shape[0], "track_batch": elapsed_ms}
@@ -271,12 +329,27 @@ class TorchBackend:
             raise StateError("this TorchBackend is closed")
         return self._model
 
+    def _on_stream(self, role: str) -> contextlib.AbstractContextManager[object]:
+        """Run a pass on its CUDA stream (``_CudaStreams``); nothing off CUDA."""
+        if self._streams is None:
+            return contextlib.nullcontext()
+        return self._streams.use(role)
+
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""
-        images = check_frames(images, self._info.patch_size)
+        return self._upload(check_frames(images, self._info.patch_size))
+
+    def _upload(self, images: np.ndarray) -> torch.Tensor:
+        """Checked frames (``check_frames``) -> float [N, 3, H, W] in [0, 1] on the device."""
         # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
         writable = images if images.flags.writeable else images.copy()
-        tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
+        host = torch.from_numpy(np.ascontiguousarray(writable))
+        if self._device.type == "cuda":
+            # through page-locked memory: the copy is a DMA the GPU starts at once, and the
+            # staging block comes from torch's caching host allocator (no allocation per frame)
+            tensor = host.pin_memory().to(self._device, non_blocking=True)
+        else:
+            tensor = host.to(self._device)
         if images.dtype == np.float32:  # already in [0, 1] (check_frames)
             return tensor.permute(0, 3, 1, 2).contiguous()
         return tensor.permute(0, 3, 1, 2).float().div_(255.0)
