@@ -178,13 +178,15 @@ def upload_section(run: Run) -> dict[str, Any]:
     rows: dict[str, Any] = {}
     for name in ("pageable", "pinned"):
         samples = []
-        for _ in range(200):
-            def upload() -> torch.Tensor:
-                host = torch.from_numpy(frame)
-                if name == "pinned" and run.device.type == "cuda":
-                    return host.pin_memory().to(run.device, non_blocking=True)
-                return host.to(run.device)
+        pinned = name == "pinned" and run.device.type == "cuda"
 
+        def upload(pinned: bool = pinned) -> torch.Tensor:
+            host = torch.from_numpy(frame)
+            if pinned:
+                return host.pin_memory().to(run.device, non_blocking=True)
+            return host.to(run.device)
+
+        for _ in range(200):
             samples.append(timed(upload, run.device))
         rows[name] = {"median_us": statistics.median(samples) * 1e6, "p99_us":
                       float(np.percentile(samples, 99)) * 1e6}  # fmt: skip
@@ -309,6 +311,46 @@ def da3_parity(run: Run, checks: Checks) -> None:
     checks.rows["da3.graph_report"] = {"ok": True, **_report(graphed.runner)}
 
 
+def backend_parity(run: Run, checks: Checks) -> None:
+    """Tracked poses through ``TorchBackend`` in fp32 (eager and CUDA graph) against the golden
+    queries; the fp32 backend turns cuDNN's TF32 off, which ``cudnn_tf32_after`` records."""
+    from kvtracker_sdk.backends.torch_backend import TorchBackend
+    from kvtracker_sdk.models.da3 import load_da3
+    from kvtracker_sdk.models.pi3 import load_pi3
+
+    golden = run.args.shared / "golden"
+    cases = []
+    for case, query in (("case1", "query"), ("case2", "query5")):
+        imgs = _load(golden / "pi3" / case / "inputs.safetensors")["imgs"][0]
+        keyframes = 3 if case == "case1" else 5
+        expected = _load(golden / "pi3" / case / "outputs_query.safetensors")
+        pose = expected[f"{query}.camera_poses"][0, 0].double()
+        cases.append((f"pi3.{case}", lambda: load_pi3(golden / "pi3" / "weights.safetensors").model,
+                      imgs, keyframes, pose))  # fmt: skip
+    imgs = _load(golden / "da3" / "inputs.safetensors")["imgs_01"][0]
+    extrinsics = _load(golden / "da3" / "outputs_query.safetensors")["query.extrinsics"][0, 0]
+    world_to_cam = torch.eye(4, dtype=torch.float64)
+    world_to_cam[:3] = extrinsics.double()
+    cases.append(("da3", lambda: load_da3(golden / "da3" / "weights.safetensors").model, imgs, 3,
+                  torch.linalg.inv(world_to_cam)))  # fmt: skip
+    for label, load, imgs, keyframes, pose in cases:
+        frames = imgs.permute(0, 2, 3, 1).contiguous().numpy()  # float32 [N, H, W, 3] in [0, 1]
+        for variant, graph in (("backend", False), ("backend-graph", GraphOptions(8))):
+            backend = TorchBackend(load(), device=run.device, cuda_graph=graph)
+            mapped = backend.map(frames[:keyframes])
+            for _ in range(2):  # the graph's first call captures, the second replays
+                result = backend.track(frames[keyframes], mapped.cache)
+            checks.add(f"{label}.{variant}.pose", torch.from_numpy(np.array(result.pose)), pose,
+                       1e-5, 0)  # fmt: skip
+            if backend.graph_report is not None:
+                checks.rows[f"{label}.{variant}.graph"] = {
+                    "ok": backend.graph_report.replays > 0 or run.device.type != "cuda",
+                    "replays": backend.graph_report.replays, "eager": backend.graph_report.eager,
+                    "errors": backend.graph_report.errors,
+                }  # fmt: skip
+    checks.rows["cudnn_tf32_after"] = {"ok": True, "value": torch.backends.cudnn.allow_tf32}
+
+
 @contextlib.contextmanager
 def tf32(enabled: bool | None) -> Iterator[None]:
     """cuDNN/cuBLAS TF32 flags for a block (None: leave PyTorch's defaults)."""
@@ -334,6 +376,14 @@ def parity_section(run: Run) -> dict[str, Any]:
                     checks.rows[family_parity.__name__] = {"ok": False, "error": repr(exc)}
                     traceback.print_exc()
         result[label] = checks.summary()
+    checks = Checks()  # last: an fp32 backend on CUDA turns cuDNN's TF32 off for the process
+    with tf32(None):
+        try:
+            backend_parity(run, checks)
+        except Exception as exc:
+            checks.rows["backend_parity"] = {"ok": False, "error": repr(exc)}
+            traceback.print_exc()
+    result["torch_backend"] = checks.summary()
     return result
 
 
@@ -460,6 +510,8 @@ class StepModels:
         budget = run.args.budget
         self.ladder = GraphTracking(self.bf16, layout, GraphOptions(budget))
         self.flat = GraphTracking(self.bf16, layout, GraphOptions(budget, ladder=False))
+        # one keyframe more than the budget: at N = budget the masked graph (the others are full)
+        self.masked = GraphTracking(self.bf16, layout, GraphOptions(budget + 1, ladder=False))
 
     def steps(self, frames: torch.Tensor, cache: KVCache, heads: HeadSet
               ) -> dict[str, Callable[[], np.ndarray]]:  # fmt: skip
@@ -477,6 +529,7 @@ class StepModels:
             "eager-bf16": step(self.bf16),
             "graph-bf16": step(SimpleNamespace(forward_track=self.ladder)),
             "graph-flat-bf16": step(SimpleNamespace(forward_track=self.flat)),
+            "graph-masked-bf16": step(SimpleNamespace(forward_track=self.masked)),
             "official-bf16": step(self.fp32, lambda: official_step(device)),
         }
 
@@ -521,7 +574,8 @@ def steps_section(run: Run) -> dict[str, Any]:
                 run.write()
             del cache
         result["graph_reports"][name] = {"ladder": _report(models.ladder),
-                                         "flat": _report(models.flat)}  # fmt: skip
+                                         "flat": _report(models.flat),
+                                         "masked": _report(models.masked)}  # fmt: skip
         del models
         if device.type == "cuda":
             torch.cuda.empty_cache()
@@ -598,13 +652,14 @@ def session_section(run: Run) -> dict[str, Any]:
 
     args = run.args
     frames = tum_frames(run)
+    graph = GraphOptions(args.session_keyframes, ladder=False)
     variants = {
-        "graph+mapping-stream": {"cuda_graph": GraphOptions(args.session_keyframes, ladder=False),
-                                 "mapping_stream": True},
+        "graph+mapping-stream": {"cuda_graph": graph, "mapping_stream": True},
         "eager+mapping-stream": {"cuda_graph": False, "mapping_stream": True},
-        "graph, one stream": {"cuda_graph": GraphOptions(args.session_keyframes, ladder=False),
-                              "mapping_stream": False},
+        "graph, one stream": {"cuda_graph": graph, "mapping_stream": False},
+        "eager, one stream": {"cuda_graph": False, "mapping_stream": False},
     }  # fmt: skip
+    variants = {label: variants[label] for label in args.session_variants}
     result: dict[str, Any] = {"model": args.session_model, "resolution": args.session_resolution,
                               "interval_frames": args.session_interval,
                               "max_keyframes": args.session_keyframes, "variants": {}}  # fmt: skip
@@ -649,10 +704,17 @@ def compile_section(run: Run) -> dict[str, Any]:
         frames = torch.rand(1, 3, args.size, args.size, device=device,
                             generator=torch.Generator(device=device).manual_seed(0))  # fmt: skip
         cache = random_cache(models.bf16, args.budget, args.size, device)
-        steps = models.steps(frames, cache, HeadSet.CAMERA)
-        steps = {"compile-bf16": lambda: np.asarray(models.family.track(
-            SimpleNamespace(forward_track=compiled), frames, cache, HeadSet.CAMERA).poses[0]),
-            "eager-bf16": steps["eager-bf16"], "graph-bf16": steps["graph-bf16"]}  # fmt: skip
+        sdk = models.steps(frames, cache, HeadSet.CAMERA)
+        family = models.family
+
+        def compiled_step(c: Any = compiled, f: Any = family, k: KVCache = cache,
+                          x: torch.Tensor = frames) -> np.ndarray:  # fmt: skip
+            with torch.no_grad():
+                proxy = SimpleNamespace(forward_track=c)
+                return np.asarray(f.track(proxy, x, k, HeadSet.CAMERA).poses[0])
+
+        steps = {"compile-bf16": compiled_step, "eager-bf16": sdk["eager-bf16"],
+                 "graph-bf16": sdk["graph-bf16"]}  # fmt: skip
         first = {}
         poses = {}
         with torch.no_grad():
@@ -718,10 +780,12 @@ def markdown(result: dict[str, Any]) -> str:
                   "(median ms, FPS, speed-up over the official step, fraction of the bf16 FLOP "
                   "limit):", "",
                   "| model | N | heads | GFLOP | limit ms | eager-bf16 | graph-bf16 | "
-                  "graph-flat-bf16 | official-bf16 |", "|---|---:|---|---:|---:|---|---|---|---|"]
+                  "graph-flat-bf16 | graph-masked-bf16 | official-bf16 |",
+                  "|---|---:|---|---:|---:|---|---|---|---|---|"]
         for p in steps["points"]:
             cells = []
-            for label in ("eager-bf16", "graph-bf16", "graph-flat-bf16", "official-bf16"):
+            for label in ("eager-bf16", "graph-bf16", "graph-flat-bf16", "graph-masked-bf16",
+                          "official-bf16"):
                 row = p["rows"].get(label)
                 if row is None:
                     cells.append("—")
@@ -788,6 +852,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     add("--session-warmup", type=int, default=24)
     add("--session-interval", type=int, default=10)
     add("--session-keyframes", type=int, default=16)
+    add("--session-variants", nargs="+", default=["graph+mapping-stream", "eager+mapping-stream",
+                                                   "graph, one stream"])  # fmt: skip
     add("--budget-s", type=float, default=330.0, help="sections after this many seconds skip")
     add("--shared", type=Path, default=SHARED)
     add("--out", type=Path, default=RESULTS)

@@ -14,7 +14,8 @@ changes length with every rebuild and is a new tensor after each one, so the ste
 keyframes, plus one scratch region for the query frames right after that capacity). Each map is
 copied into those buffers once when it first appears (a device copy, dequantised if the map is
 stored quantised), and a per-layer boolean key mask, read by the graph at every replay, hides the
-slots that hold no keyframe. Attention does not depend on where a key sits in the buffer (the
+slots that hold no keyframe (a map that fills the capacity gets its own graph without the mask:
+PyTorch's flash attention kernel takes no mask, and the masked kernel is slower). Attention does not depend on where a key sits in the buffer (the
 keys were rotated by RoPE before they were cached), so the step computes the eager step's
 function; only float summation order and the attention kernel (a masked one) differ.
 
@@ -151,9 +152,15 @@ class StaticCache:
     def buffers(self, layer: int) -> tuple[torch.Tensor, torch.Tensor]:
         return self._keys[layer], self._values[layer]
 
-    def key_mask(self, layer: int) -> torch.Tensor:
-        """bool [capacity + scratch]: the loaded map's tokens and the scratch (True)."""
-        return self._mask[layer]
+    def key_mask(self, layer: int) -> torch.Tensor | None:
+        """bool [capacity + scratch]: the loaded map's tokens and the scratch (True); None when
+        the map fills the capacity (the unmasked step: PyTorch's flash kernel takes no mask)."""
+        return None if self.full else self._mask[layer]
+
+    @property
+    def full(self) -> bool:
+        """Every layer holds ``capacity`` tokens: no slot needs masking."""
+        return all(length == self.capacity for length in self.lengths)
 
     # ---------------------------------------------------------------- loading
     def view(self, capacity: int) -> StaticCache:
@@ -229,7 +236,8 @@ class GraphTracking:
             tokens = cache.tokens_per_frame
             try:
                 self._load(cache, tokens, imgs.dtype)
-                key = (capacity, tuple(imgs.shape), imgs.dtype, tuple(sorted(kwargs.items())))
+                full = self._view(capacity * tokens).full  # a full map: its own, unmasked graph
+                key = (capacity, full, tuple(imgs.shape), imgs.dtype, tuple(sorted(kwargs.items())))
                 captured = self._graphs.get(key)
                 if captured is None:
                     captured = self._capture(key, capacity * tokens, imgs, kwargs)
@@ -312,7 +320,8 @@ class GraphTracking:
         captured = _Captured(replay, frames, output, view)
         self._graphs[key] = captured
         seconds = time.perf_counter() - start
-        self.report.captures[f"{key[0]} keyframes, {key[3]}"] = seconds
+        masked = "full" if key[1] else "masked"
+        self.report.captures[f"{key[0]} keyframes {masked}, {key[4]}"] = seconds
         _log.info("tracking step captured", capacity_tokens=capacity_tokens,
                   seconds=round(seconds, 3))  # fmt: skip
         return captured

@@ -17,8 +17,8 @@ block, tokens [B, N*T, C]) -> tokens:
   layers differ) and attends over the cached tokens plus its own
   (``Block.forward_track``). The cache is checked **before** it grows, and the mask of several
   queries is built for their rows only ([F*T, past + F*T], not the S x S matrix). A cache with
-  ``key_mask(layer)`` (bool per buffer token, True = may attend: a static-shape cache whose
-  "length" is its fixed capacity) masks the tokens it does not hold;
+  ``key_mask(layer)`` (bool per buffer token, True = may attend, or None for all: a
+  static-shape cache whose "length" is its fixed capacity) masks the tokens it does not hold;
 - ``PastInputsStep``: the exported tracking graphs' step, one frame reading each layer's past
   K/V from graph inputs by slicing (``Block.forward_past``; ONNX cannot write in place).
 """
@@ -146,9 +146,11 @@ class CacheTrackingStep:
             own = frames * tokens_per_frame
             self.layer_masks = []
             for ordinal, past in enumerate(self.past):
-                valid = key_mask(ordinal)[: past + own].unsqueeze(0)  # bool [1, past + own]
-                mask = self.masks[past]
-                self.layer_masks.append(valid if mask is None else mask & valid)
+                mask, layer_mask = self.masks[past], key_mask(ordinal)  # None: every token
+                if layer_mask is not None:
+                    valid = layer_mask[: past + own].unsqueeze(0)  # bool [1, past + own]
+                    mask = valid if mask is None else mask & valid
+                self.layer_masks.append(mask)
 
     def __call__(self, ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
         key_buffer, value_buffer = self.cache.buffers(ordinal)
