@@ -31,7 +31,6 @@ same ``info.fingerprint`` (their caches still differ by ``dtype``).
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 from typing import Any, cast
@@ -111,32 +110,6 @@ def _graph_options(cuda_graph: bool | GraphOptions) -> GraphOptions | None:
     raise ConfigError(f"cuda_graph must be a bool or GraphOptions, got {cuda_graph!r}")
 
 
-class _CudaStreams:
-    """Tracking on a high-priority CUDA stream, mapping on a low-priority one.
-
-    Why: a rebuild's mapping pass runs on the mapping worker while the tracker keeps tracking. On
-    one stream (the default, shared by all threads) the GPU runs kernels in launch order, so a
-    tracking step launched during a rebuild waits for every mapping kernel queued before it; on
-    two streams the scheduler interleaves them and prefers the tracking stream's blocks. Both
-    passes end in a host copy of their outputs (a synchronisation), so a cache made on the mapping
-    stream is complete before a tracking step reads it, and a pass's tensors are idle when freed.
-    """
-
-    def __init__(self, device: torch.device) -> None:
-        # lower numbers run first; torch maps one past the device's range to its highest
-        self.streams = {
-            "tracking": torch.cuda.Stream(device=device, priority=-8),
-            "mapping": torch.cuda.Stream(device=device, priority=0),
-        }
-
-    @classmethod
-    def make(cls, device: torch.device, enabled: bool) -> _CudaStreams | None:
-        return cls(device) if enabled and device.type == "cuda" else None
-
-    def use(self, role: str) -> contextlib.AbstractContextManager[object]:
-        return torch.cuda.stream(self.streams[role])
-
-
 def _accelerations(device: torch.device) -> tuple[str, ...]:
     """Fast paths in use, detected once: fused SDPA kernels and the CPU vector ISA."""
     if device.type == "cuda":
@@ -167,7 +140,6 @@ class TorchBackend:
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
         cuda_graph: bool | GraphOptions = False,
-        mapping_stream: bool = True,
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
         graph_options = _graph_options(cuda_graph)
@@ -208,7 +180,6 @@ class TorchBackend:
         self._family = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
-        self._streams = _CudaStreams.make(self._device, mapping_stream)
         self._info = BackendInfo(
             backend="torch",
             model=model_name or family.model_name(model),
@@ -223,8 +194,7 @@ class TorchBackend:
             accelerations=_accelerations(self._device)
             + (() if attention == "sdpa" else (f"cached-attention-{attention}",))
             + (() if compile_options is None else (compile_options.describe(),))
-            + (() if graph_options is None else (graph_options.describe(),))
-            + (() if self._streams is None else ("cuda-mapping-stream",)),
+            + (() if graph_options is None else (graph_options.describe(),)),
         )
 
     @classmethod
@@ -240,7 +210,6 @@ class TorchBackend:
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
         cuda_graph: bool | GraphOptions = False,
-        mapping_stream: bool = True,
     ) -> TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
@@ -257,7 +226,6 @@ class TorchBackend:
             compile=compile,
             attention=attention,
             cuda_graph=cuda_graph,
-            mapping_stream=mapping_stream,
         )
 
     # ------------------------------------------------------------------ Backend protocol
@@ -286,7 +254,7 @@ class TorchBackend:
         frames = self._to_tensor(images)
         check_masks(masks, images)
         start = time.perf_counter()
-        with torch.no_grad(), self._on_stream("mapping"):
+        with torch.no_grad():
             mapped = self._family.map(model, frames)
         outputs = mapped.frames
         return MapResult.of_pass(
@@ -319,7 +287,7 @@ class TorchBackend:
         images = check_frames(images, self._info.patch_size)
         check_cache(cache, self._info, images.shape[1], images.shape[2])
         start = time.perf_counter()
-        with cache.lock, torch.no_grad(), self._on_stream("tracking"):
+        with cache.lock, torch.no_grad():
             frames = self._upload(images)
             output = self._family.track(model, frames, cache, heads)
         elapsed_ms = (time.perf_counter() - start) * 1e3
@@ -335,12 +303,6 @@ class TorchBackend:
         if self._model is None:
             raise StateError("this TorchBackend is closed")
         return self._model
-
-    def _on_stream(self, role: str) -> contextlib.AbstractContextManager[object]:
-        """Run a pass on its CUDA stream (``_CudaStreams``); nothing off CUDA."""
-        if self._streams is None:
-            return contextlib.nullcontext()
-        return self._streams.use(role)
 
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""

@@ -12,6 +12,7 @@ summation), also on the query's K/V written back into the map cache's scratch.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -200,3 +201,17 @@ def test_torch_backend_option_on_cpu(models: dict[str, torch.nn.Module]) -> None
     assert graphed.graph_report is not None and graphed.graph_report.eager == 1
     with pytest.raises(ConfigError):
         TorchBackend(copy.deepcopy(models["da3"]), cuda_graph=True, compile=True)
+
+
+@torch.no_grad()
+def test_pi3_finishes_a_captured_output(
+    models: dict[str, torch.nn.Module], frames: torch.Tensor
+) -> None:
+    """Under capture Pi3's camera head leaves the raw 3x3 (the SVD syncs the host); the finish
+    projects it and recomputes the world points: the eager output again."""
+    model = models["pi3"]
+    expected = model.forward_track(frames[5:6], _map(model, frames[:2]), heads=HeadSet.ALL)
+    raw = expected.camera_poses.clone()
+    raw[..., :3, :3] *= torch.tensor([2.0, 0.5, 3.0]).view(3, 1)  # rows rescaled: the same rotation
+    captured = dataclasses.replace(expected, camera_poses=raw, points=torch.zeros_like(expected.points))
+    _assert_same(model.finish_captured_track(captured), expected)
