@@ -223,7 +223,7 @@ class Checks:
 
 def _graphed(model: torch.nn.Module) -> SimpleNamespace:
     """``model`` whose ``forward_track`` is replayed from CUDA graphs (eager off CUDA)."""
-    runner = GraphTracking(model, family_of(model).cache_layout(model), GraphOptions(8))
+    runner = GraphTracking(model, family_of(model).cache_layout(model), GraphOptions(8, ladder=True))
     return SimpleNamespace(forward_track=runner, runner=runner)
 
 
@@ -508,7 +508,7 @@ class StepModels:
         self.family = family_of(self.fp32)
         layout = self.family.cache_layout(self.bf16)
         budget = run.args.budget
-        self.ladder = GraphTracking(self.bf16, layout, GraphOptions(budget))
+        self.ladder = GraphTracking(self.bf16, layout, GraphOptions(budget, ladder=True))
         self.flat = GraphTracking(self.bf16, layout, GraphOptions(budget, ladder=False))
         # one keyframe more than the budget: at N = budget the masked graph (the others are full)
         self.masked = GraphTracking(self.bf16, layout, GraphOptions(budget + 1, ladder=False))

@@ -19,12 +19,15 @@ PyTorch's flash attention kernel takes no mask, and the masked kernel is slower)
 keys were rotated by RoPE before they were cached), so the step computes the eager step's
 function; only float summation order and the attention kernel (a masked one) differ.
 
-Capacities: with ``ladder=True`` (default) a graph is captured per power-of-two keyframe count up
-to ``max_keyframes`` (1, 2, 4, ..., max), the smallest one that holds the map; the work then
-follows the map's size and a growing map captures at most log2(max) + 1 times, once per rung.
-With ``ladder=False`` one graph of ``max_keyframes`` serves every map (a constant step time). A
-map larger than ``max_keyframes``, several query frames, a device that is not CUDA or a failed
-capture run the eager step (``graph_report.eager`` counts them, ``errors`` says why).
+Capacities: by default one capacity of ``max_keyframes`` serves every map, so a growing map never
+captures again: the first tracking call captures two graphs (the masked one and the one for a
+map that fills the capacity; ``graph_report.captures`` has their seconds), and the step then
+costs what a full map costs whatever the map's size. With ``ladder=True`` a pair is captured per
+power-of-two keyframe count up to ``max_keyframes`` (1, 2, 4, ..., max), the smallest that holds
+the map: the step follows the map's size, but the first frame after the map grows past a rung
+waits for a capture (many steps; ``docs/gpu.md`` has the measurements). A map larger
+than ``max_keyframes``, several query frames, a device that is not CUDA or a failed capture run
+the eager step (``graph_report.eager`` counts them, ``errors`` says why).
 
 The query frames' own K/V are copied back into the map cache's scratch after each replay (a
 one-frame pass of a dense cache), as the eager step leaves them there: incremental keyframes adopt
@@ -61,7 +64,7 @@ class GraphOptions:
     """How the tracking step is captured (``TorchBackend(cuda_graph=...)``)."""
 
     max_keyframes: int = 32  # the static buffers' capacity; set it to the tracker's budget
-    ladder: bool = True  # a graph per power-of-two capacity (False: one of max_keyframes)
+    ladder: bool = False  # True: a graph per power-of-two capacity (work follows the map)
     warmup_calls: int = 2  # eager calls on a side stream before a capture (cuBLAS/cuDNN set-up)
 
     def __post_init__(self) -> None:
@@ -241,6 +244,8 @@ class GraphTracking:
                 captured = self._graphs.get(key)
                 if captured is None:
                     captured = self._capture(key, capacity * tokens, imgs, kwargs)
+                    twin = (key[0], not full, *key[2:])  # the map filling up: no capture then
+                    self._capture(twin, capacity * tokens, imgs, kwargs)
                 captured.frames.copy_(imgs)
                 captured.replay()
                 output = _copy_output(captured.output)
@@ -313,10 +318,20 @@ class GraphTracking:
     def _capture(
         self, key: tuple[Any, ...], capacity_tokens: int, imgs: torch.Tensor, kwargs: dict[str, Any]
     ) -> _Captured:
+        """The graph of ``key`` (capacity, full, ...): with ``full`` the step is captured
+        without the key mask, whatever the loaded map (the mask's content is read at replay,
+        only whether there is one is fixed at capture)."""
         start = time.perf_counter()
         view = self._view(capacity_tokens)
         frames = imgs.clone()
-        replay, output = self._record(lambda: self._eager(frames, view, **kwargs), imgs.device)
+        loaded = view.lengths
+        view.lengths = (capacity_tokens,) * len(loaded) if key[1] else (0,) * len(loaded)
+        try:
+            replay, output = self._record(
+                lambda: self._eager(frames, view, **kwargs), imgs.device
+            )
+        finally:
+            view.lengths = loaded
         captured = _Captured(replay, frames, output, view)
         self._graphs[key] = captured
         seconds = time.perf_counter() - start

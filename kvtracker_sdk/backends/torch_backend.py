@@ -21,7 +21,11 @@ pass) against a cache while holding ``cache.lock``; the cache's content is only 
 
 The backend owns the model it is given: it casts it to ``dtype`` (final heads stay fp32) and moves
 it to ``device``; with ``compile`` its ``forward_track`` is replaced by a compiled one
-(``backends/torch_compile.py``). ``threads`` sets torch's intra-op threads, process-wide (None:
+(``backends/torch_compile.py``). ``cuda_graph`` (``True`` or ``GraphOptions(max_keyframes=...)``)
+replays the tracking step from CUDA graphs over static cache buffers
+(``backends/cuda_graph_step.py``; eager off CUDA). An fp32 backend on CUDA turns cuDNN's TF32 off,
+process-wide (fp32 convolutions in TF32 moved DA3's depth off the golden vectors). ``threads``
+sets torch's intra-op threads, process-wide (None:
 chosen from the usable cores and the load, ``kvtracker_sdk/threads.py``); ``backend.threads``
 reports the choice. ``attention="products"`` computes the tracking step's attention over the cache
 as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights
@@ -312,8 +316,8 @@ class TorchBackend:
         """Checked frames (``check_frames``) -> float [N, 3, H, W] in [0, 1] on the device."""
         # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
         writable = images if images.flags.writeable else images.copy()
-        # a plain copy: through page-locked memory it took 48 µs instead of 53 µs for a 308 px
-        # frame on an H100 (benchmarks/gpu_check.py), nothing against a step of milliseconds
+        # a plain copy: page-locked staging gained nothing measurable against a step on a GPU
+        # (benchmarks/gpu_check.py, section upload)
         tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
         if images.dtype == np.float32:  # already in [0, 1] (check_frames)
             return tensor.permute(0, 3, 1, 2).contiguous()

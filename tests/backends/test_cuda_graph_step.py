@@ -105,10 +105,10 @@ def _largest_difference(output: Any, expected: Any) -> float:
 
 
 def test_capacity_ladder() -> None:
-    ladder = GraphOptions(max_keyframes=50)
+    ladder = GraphOptions(max_keyframes=50, ladder=True)
     assert [capacity_ladder(n, ladder) for n in (1, 2, 3, 8, 9, 33, 50)] == [1, 2, 4, 8, 16, 50, 50]
     assert capacity_ladder(51, ladder) is None
-    flat = GraphOptions(max_keyframes=50, ladder=False)
+    flat = GraphOptions(max_keyframes=50)
     assert {capacity_ladder(n, flat) for n in (1, 7, 50)} == {50}
     with pytest.raises(ConfigError):
         GraphOptions(max_keyframes=0)
@@ -144,9 +144,12 @@ def test_runner_follows_growing_and_new_maps(
 ) -> None:
     model = copy.deepcopy(models[name])
     eager = model.forward_track
-    runner = ReplayingGraphs(model, family_of(model).cache_layout(model), GraphOptions(4))
+    runner = ReplayingGraphs(
+        model, family_of(model).cache_layout(model), GraphOptions(4, ladder=True)
+    )
     query = frames[5:6]
-    for keyframes in (1, 2, 3, 2):  # capacities 1, 2, 4, then 2 again (captured already)
+    # capacities 1, 2, 4 (masked), 4 full (captured with the masked one), 2 again
+    for keyframes in (1, 2, 3, 4, 2):
         cache = _map(model, frames[:keyframes])
         reference = cache.clone()
         for heads in HEAD_SETS:
@@ -159,13 +162,14 @@ def test_runner_follows_growing_and_new_maps(
                         ours[:, :, :end], theirs[:, :, :end], atol=1e-5, rtol=1e-5
                     )
     report = runner.report
-    assert len(report.captures) == 3 * len(HEAD_SETS)  # rungs 1, 2 and 4, per head set
-    assert report.cache_loads == 4 and report.replays == 4 * len(HEAD_SETS) and report.eager == 0
+    # rungs 1, 2 and 4 per head set, each masked and full: nothing captured for 4 or 2 again
+    assert len(report.captures) == 3 * 2 * len(HEAD_SETS)
+    assert report.cache_loads == 5 and report.replays == 5 * len(HEAD_SETS) and report.eager == 0
 
     # a map in place (a keyframe dropped) is loaded again; a map past the capacity runs eager
     cache.drop_keyframes([0])
     _assert_same(runner(query, cache, heads=HeadSet.CAMERA), eager(query, cache.clone()))
-    assert report.cache_loads == 5
+    assert report.cache_loads == 6
     large = _map(model, frames[:5])
     _assert_same(runner(query, large, heads=HeadSet.CAMERA), eager(query, large.clone()))
     assert report.eager == 1 and "5 keyframes > max_keyframes 4" in report.errors[-1]
@@ -193,7 +197,7 @@ def test_torch_backend_option_on_cpu(models: dict[str, torch.nn.Module]) -> None
     images = np.random.default_rng(1).integers(0, 256, size=(3, H, W, 3), dtype=np.uint8)
     plain = TorchBackend(copy.deepcopy(models["da3"]))
     graphed = TorchBackend(copy.deepcopy(models["da3"]), cuda_graph=GraphOptions(8))
-    assert "cuda-graph-8-ladder" in graphed.info.accelerations
+    assert "cuda-graph-8" in graphed.info.accelerations
     assert graphed.info.fingerprint == plain.info.fingerprint
     mapped = plain.map(images[:2])
     expected = plain.track(images[2], mapped.cache).pose
