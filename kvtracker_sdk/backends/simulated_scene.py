@@ -305,7 +305,8 @@ class SimulatedScene:
         with np.errstate(divide="ignore", invalid="ignore"):
             exits = np.where(directions > 0, self.room_max - c, self.room_min - c) / directions
         nearest = np.min(np.where(np.isfinite(exits) & (exits > 0), exits, np.inf), axis=-1)
-        for solid in (*self.others, *self.planes):
+        solids: tuple[Cuboid | Plane, ...] = (*self.others, *self.planes)
+        for solid in solids:
             nearest = np.minimum(nearest, solid.hit(c, directions))
         if self.object_shape is not None:
             hit = self.object_shape.hit(c, directions)

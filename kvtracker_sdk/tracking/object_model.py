@@ -166,8 +166,8 @@ def fuse_object(keyframes: Sequence[Keyframe], *, step: int = POINT_STEP) -> Fus
     (see the module docstring)."""
     chunks = [_foreground(kf, step) for kf in keyframes]
     if not chunks or len(chunks[0].points) == 0:
-        points = [c.points for c in chunks]
-        return FusedObject(np.concatenate(points) if points else np.empty((0, 3)), None)
+        found = [c.points for c in chunks]
+        return FusedObject(np.concatenate(found) if found else np.empty((0, 3)), None)
     # every pixel of keyframe 0 for the planes: a tight box shows the desk in its corners only
     planes = _planes_around(keyframes[0], _foreground(keyframes[0], 1))
     kept = [c.points if planes is None else c.points[drop_behind(c.points, planes)]
