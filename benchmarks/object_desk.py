@@ -102,7 +102,9 @@ def layout(name: str, frames: int = 720) -> Layout:
     second = desk_orbit(DAY2_FRAMES, seed=11, wall=wall)
     poses = np.concatenate([first.poses, _panned_in(second)])
     truth = GroundTruth(np.arange(len(poses)) / 30.0, poses)
-    return Layout(name, truth, SimulatedScene.desk(first.poses, wall=wall), frames)
+    # the scene where the full walk looks (a shorter one is the same scene, walked faster)
+    scene = SimulatedScene.desk(desk_orbit(720, seed=3, wall=wall).poses, wall=wall)
+    return Layout(name, truth, scene, frames)
 
 
 def _alignment(kf_map: KeyframeMap, truth: GroundTruth) -> Any:
@@ -185,16 +187,17 @@ def first_walk(lay: Layout, map_path: Path | None = None) -> dict[str, Any]:
     return out
 
 
-def second_walk(name: str, map_path: Path) -> dict[str, Any]:
-    """Load ``map_path`` (no box, mode from the map) and track the second walk."""
-    lay = layout(name)
+def second_walk(lay: Layout, map_path: Path, *, frames: int | None = None) -> dict[str, Any]:
+    """Load ``map_path`` (no box, mode from the map) and track the second walk (its first
+    ``frames``, or all of it)."""
     backend = lay.backend()
-    indices = range(lay.first_frames, len(lay.truth))
+    stop = len(lay.truth) if frames is None else lay.first_frames + frames
+    indices = range(lay.first_frames, stop)
     boxes = _true_boxes(lay.scene, lay.truth, indices)
     results = []
     with Tracker.from_map(map_path, backend) as tracker:  # the mode comes from the map
         mode = tracker.config.mode.value
-        for frame in backend.frames(SIZE, textured=False, start=lay.first_frames):
+        for frame in backend.frames(SIZE, textured=False, start=lay.first_frames, stop=stop):
             results.append(tracker.push_frame(frame.image, timestamp=frame.timestamp))
     in_view = next(i for i, b in enumerate(boxes)
                    if b is not None and b[0] > 0 and b[1] > 0 and b[2] < SIZE[1] and b[3] < SIZE[0])
@@ -211,11 +214,13 @@ def second_walk(name: str, map_path: Path) -> dict[str, Any]:
     return out
 
 
-def reload_in_new_process(name: str, map_path: Path) -> dict[str, Any]:
-    """``second_walk`` in a fresh Python process (the map is all they share)."""
+def reload_in_new_process(name: str, map_path: Path, *, frames: int | None = None) -> dict[str, Any]:
+    """``second_walk`` (its first ``frames``, or all) in a fresh Python process (the map is all
+    they share)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    more = [] if frames is None else ["--reload-frames", str(frames)]
     done = subprocess.run(
-        [sys.executable, "-m", "benchmarks.object_desk", "--reload", name, str(map_path)],
+        [sys.executable, "-m", "benchmarks.object_desk", "--reload", name, str(map_path), *more],
         capture_output=True, text=True, env=env, check=True, cwd=Path(__file__).parents[1])
     result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
     return result
@@ -243,9 +248,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--layouts", nargs="+", default=["desk", "wall", "floating"])
     parser.add_argument("--out", type=Path, default=RESULTS / "object_desk.json")
     parser.add_argument("--reload", nargs=2, metavar=("LAYOUT", "MAP"), help=argparse.SUPPRESS)
+    parser.add_argument("--reload-frames", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.reload:  # the child process of reload_in_new_process
-        result = second_walk(args.reload[0], Path(args.reload[1]))
+        result = second_walk(layout(args.reload[0]), Path(args.reload[1]),
+                             frames=args.reload_frames)
         print(json.dumps(result))
         return result
     rows: dict[str, dict[str, Any]] = {}
