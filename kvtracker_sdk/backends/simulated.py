@@ -3,7 +3,9 @@ for demos without weights.
 
 It behaves like Pi3 where the tracker can tell: every mapping pass returns its poses, local points
 and depths in its own random Sim(3) frame and scale; poses carry noise; confidence can be dropped
-over chosen frame ranges (loss) or in mapping passes only (keyframe rejection). It returns a real
+over chosen frame ranges (loss) or in mapping passes only (keyframe rejection), and, with
+``object_in_view``, on tracked frames that do not show the whole object unmasked (as a network
+cannot place a camera against an object's map without seeing the object). It returns a real
 ``KVCache`` — the tracker exercises the same cache code as with a network — whose tokens carry
 what a stateless backend needs to track against it: the pass's hidden Sim(3) and the frame index
 of each keyframe.

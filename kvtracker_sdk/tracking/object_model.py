@@ -2,9 +2,10 @@
 
 **Fused object points**: the world points (the backend's local points through each keyframe's
 ``T_world_cam``) of every keyframe's masked pixels that are confident and in the mask's
-**foreground**. The foreground rule exists because a box (or a loose mask) also covers background:
-the wall behind a mug would otherwise become part of the "object" and its projection would swell
-the predicted region with every keyframe. Per keyframe:
+**foreground**, then separated from what the object stands on and what stands beside it
+(``object_separation``). The foreground rule exists because a box (or a loose mask) also covers
+background: the wall behind a mug would otherwise become part of the "object" and its projection
+would swell the predicted region with every keyframe. Per keyframe:
 
 * ``d_c``: the median depth of the masked pixels in the middle half of the mask's box (where the
   object is, whatever the box's corners show);
@@ -12,23 +13,29 @@ the predicted region with every keyframe. Per keyframe:
   slopes X/Z, Y/Z over the mask (no intrinsics needed: the local points carry their rays);
 * kept: masked pixels with depth in ``[d_c - L, d_c + L]`` (an object is assumed no deeper than
   it is wide as seen; the far background of a box is dropped, a desk top at the object's depth is
-  not — a real mask from a ``Segmenter`` avoids that).
+  not: the separation's support planes are).
 
-The **anchor ball** bounds what later keyframes may add: the first keyframe (keyframe 0, the frame
-the app pointed at the object) gives the object's centre c0 and radius r0 (98th percentile of its
-points' distances to c0), and fused points must lie within 2 r0 of c0. Later keyframes' masks are
-*predicted* regions grown a little (so that newly seen surface enters the map); without the ball,
-a background at the object's depth (the desk under a mug) could enter with each keyframe and the
-region would grow without end. The far side of a round object lies within 1.5 r0 of c0; an object
-much longer than it first looked (a pen seen end-on) is cut at 2 r0.
+Then, from all keyframes at once: points on or behind the **support planes** found around
+keyframe 0's box are dropped (per keyframe), and of what is left only the **3D connected
+component** holding most of keyframe 0's points is kept (the neighbour beside the object is
+another component). Never is a keyframe's mask, grown from the previous prediction, trusted
+without these filters: the desk it also covers would enter with every keyframe.
 
-**Object frame** (``ObjectFrame``): origin at the object centre (the mean of the fused points, the
-centre the object keyframe rule turns around), axes of keyframe 0's camera. **Extent**: an
-``OrientedBox`` of the fused points along their principal axes, in object coordinates.
+The **anchor ball** still bounds what later keyframes may add: keyframe 0's separated points
+give the object's centre c0 and radius r0 (98th percentile of their distances to c0), and fused
+points must lie within 2 r0 of c0. The far side of a round object lies within 1.5 r0 of c0; an
+object much longer than it first looked (a pen seen end-on) is cut at 2 r0.
+
+**Object frame** (``ObjectFrame``): for an object standing on a support plane, z along the
+plane's normal (``up``), x keyframe 0's camera x laid onto the plane, origin at the centre of the
+extent, which is the smallest footprint rectangle from the plane to the top (``_standing_frame``);
+for a floating object, origin at the mean of the fused points and axes of keyframe 0's camera,
+extent along the points' principal axes. ``ObjectModel.centre`` (the origin) is the centre the
+object keyframe rule turns around.
 
 Everything is recomputed when the map object changes (every accepted rebuild moves all keyframes
 a little) and reused otherwise; the keyframes are sampled more sparsely as the map grows
-(``sampling_step``), ~25 ms per rebuild for 35 keyframes at 196x252 on one core.
+(``sampling_step``).
 """
 
 from __future__ import annotations

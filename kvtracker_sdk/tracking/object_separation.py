@@ -22,10 +22,11 @@ cannot tell them apart (they lie at the object's depth), so two geometric filter
    elsewhere), so points outside the mask are not measurements.
 
 2. **Connected components in 3D** (``object_component``): with the planes gone, the object and
-   its neighbours are islands of points. The points are put on a voxel grid (cells of about two
-   sample spacings at the object's depth) and labelled with 26-connectivity
-   (``scipy.ndimage.label``); the component holding most of keyframe 0's points is the object.
-   Neighbours further away than about two cells stay separate; objects that touch merge (a limit).
+   its neighbours are islands of points. The points are put on a voxel grid (cells of half the
+   linking distance the caller chooses) and labelled with 26-connectivity
+   (``scipy.ndimage.label``, rather than a k-d tree's pair list: one pass over a small dense
+   grid); the component holding most of keyframe 0's points is the object. Neighbours further
+   away than 3.5 cells stay separate; objects that touch merge (a limit).
 
 Thresholds are relative (map units are not metres): the plane threshold is 3 % of the object's
 lateral extent in keyframe 0 (or three residual standard deviations of the fit, if larger).
