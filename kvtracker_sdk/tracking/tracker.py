@@ -203,8 +203,9 @@ class Tracker(EventSource):
     @property
     def object_frame(self) -> ObjectFrame | None:
         """Object mode: the object's frame and extent in the world frame (``ObjectFrame``: origin
-        at the object centre, axes of keyframe 0, an oriented box of the fused object points);
-        None in scene mode and before the map holds object points."""
+        at the object centre; z along ``up``, the support plane's normal, for an object standing
+        on one, else axes of keyframe 0; an oriented box of the fused object points); None in
+        scene mode and before the map holds object points."""
         if not self._object_mode:
             return None
         with self._call():
