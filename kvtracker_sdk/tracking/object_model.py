@@ -288,16 +288,15 @@ def _standing_frame(
     axes = np.stack([x, np.cross(up, x), up], axis=1)  # right-handed, z = up
     height = support.distance(points)
     flat = points @ axes[:, :2]  # [N, 2] footprint coordinates
-    best: tuple[float, float, np.ndarray, np.ndarray] | None = None
-    for angle in np.radians(np.arange(_ANGLE_STEPS)):
-        c, s = np.cos(angle), np.sin(angle)
-        turned = flat @ np.array([[c, -s], [s, c]])
-        low, high = np.quantile(turned, [_TRIM, 1.0 - _TRIM], axis=0)
-        area = float(np.prod(high - low))
-        if best is None or area < best[0]:
-            best = (area, float(angle), low, high)
-    assert best is not None
-    _, angle, low, high = best
+    angles = np.radians(np.arange(_ANGLE_STEPS))
+    cos, sin = np.cos(angles), np.sin(angles)
+    turns = np.stack([np.stack([cos, -sin], 1), np.stack([sin, cos], 1)], 1)  # [A, 2, 2]
+    # the trimmed extremes by partial sorting (one pass over [A, N, 2], no interpolation)
+    k_low, k_high = int(_TRIM * (len(flat) - 1)), int(round((1.0 - _TRIM) * (len(flat) - 1)))
+    parted = np.partition(flat @ turns, [k_low, k_high], axis=1)
+    lows, highs = parted[:, k_low], parted[:, k_high]  # [A, 2] each
+    best = int(np.argmin(np.prod(highs - lows, axis=1)))
+    angle, low, high = float(angles[best]), lows[best], highs[best]
     bottom, top = np.quantile(height, [_TRIM, 1.0 - _TRIM])
     if bottom <= max(_TOUCH_SHARE * (top - bottom), 3.0 * threshold):
         bottom = 0.0
