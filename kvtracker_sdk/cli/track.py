@@ -47,13 +47,13 @@ def track(
     mode: Annotated[TrackingMode | None, typer.Option(
         help="scene: the camera in a static scene; object: a masked object. [default: scene]")] = None,
     masks: Annotated[Path | None, typer.Option(
-        help="Object mode: folder with one mask image per frame (natural order).")] = None,
+        help="Object mode: folder with one mask image per frame (natural order). [default: none]")] = None,
     bbox: Annotated[str | None, typer.Option(
         help="Object mode: x0,y0,x1,y1 box (pixels) used for every frame (with --bbox-once: "
-        "the first frame only).")] = None,
+        "the first frame only). [default: none]")] = None,
     bbox_once: Annotated[bool, typer.Option(
         "--bbox-once", help="Object mode: give --bbox with the first frame only; the tracker "
-        "predicts the object's region in every frame after it (object.json).")] = False,
+        "predicts the object's region in every frame after it (object.json). [default: off]")] = False,
     keyframe_interval: Annotated[int | None, typer.Option(
         help="Scene mode: a keyframe every N frames. [default: 50]")] = None,
     view_angle: Annotated[float | None, typer.Option(
@@ -71,20 +71,20 @@ def track(
         help="Intrinsics file (JSON/YAML: fx fy cx cy width height distortion, or ROS "
         "CameraInfo). [default: the dataset's published ones, if any]")] = None,
     realtime: Annotated[bool, typer.Option(
-        "--realtime", help="Replay a file at its own frame rate, like a live camera.")] = False,
+        "--realtime", help="Replay a file at its own frame rate, like a live camera. [default: off]")] = False,
     config_file: Annotated[Path | None, typer.Option(
-        "--config", help="TrackerConfig as JSON; the options above override it.")] = None,
+        "--config", help="TrackerConfig as JSON; the options above override it. [default: none]")] = None,
     load_map: Annotated[Path | None, typer.Option(
-        help="Relocalise against a saved .kvmap instead of starting a new map.")] = None,
+        help="Relocalise against a saved .kvmap instead of starting a new map. [default: none]")] = None,
     rebuild_map: Annotated[bool, typer.Option(
         "--rebuild-map", help="With --load-map: add keyframes even to a map whose frames another "
-        "preprocessing made (an older SDK); else such a map is only tracked against.")] = False,
-    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file.")] = None,
+        "preprocessing made (an older SDK); else such a map is only tracked against. [default: off]")] = False,
+    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file. [default: none]")] = None,
     rerun: Annotated[Path | None, typer.Option(
-        help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
+        help="Also record the run as a rerun .rrd file ([viz] extra). [default: none]", metavar="FILE.rrd")] = None,
     start: Annotated[int, typer.Option(help="First frame to use.")] = 0,
     stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames.")] = None,
+    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames. [default: all]")] = None,
     on_bad_frame: Annotated[BadFramePolicy, typer.Option(
         help="A frame that cannot be used (undecodable, another size, bad mask): stop the run "
         "there (outputs so far kept, exit code 3) or skip it (counted in the summary and "
@@ -95,10 +95,10 @@ def track(
     voxel_size: Annotated[float | None, typer.Option(
         help="Voxel edge of points.ply (world units; 0 keeps all). [default: auto]")] = None,
     view: Annotated[bool, typer.Option(
-        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra).")] = False,
+        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra). [default: off]")] = False,
     view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
     ros2_bag: Annotated[Path | None, typer.Option(
-        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra).", metavar="DIR")] = None,
+        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
     from kvtracker_sdk.io.camera_files import read_camera_file
