@@ -19,8 +19,11 @@ from kvtracker_sdk.cli.run_loop import BadFramePolicy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.log import get_logger
 
 __all__ = ["register", "track"]
+
+_log = get_logger(__name__)
 
 _OUT_HELP = "Output folder: trajectory.txt, keyframes.json, points.ply, trajectory.png, run.json."
 
@@ -179,15 +182,18 @@ def _check_object_inputs(
 
 
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:
-    """``open_backend`` under a spinner; exporting a checkpoint to ONNX (minutes for a full
-    model, on first use) is also announced as a line when stderr is not a terminal."""
-    if kind in (BackendKind.ONNX, BackendKind.OPENVINO) and not _is_onnx_export(weights):
-        text = (f"exporting {weights} to ONNX for {kind.value} (first use only: the export is "
-                "cached; minutes for a full model)")
-        with busy(state, text, announce=True):
-            return open_backend(kind, weights, **options)
+    """``open_backend`` under a spinner; an export of the checkpoint to ONNX (minutes for a
+    full model, on first use only) is announced as a line when it actually starts."""
+
+    def announce_export(folder: Path) -> None:
+        text = (f"exporting {weights} to ONNX for {kind.value} into {folder} (first use only: "
+                "the export is cached; minutes for a full model)")
+        _log.info(text)
+        if state.chatty:
+            state.console.print(text, highlight=False, markup=False)
+
     with busy(state, f"loading the weights {weights}"):
-        return open_backend(kind, weights, **options)
+        return open_backend(kind, weights, on_export=announce_export, **options)
 
 
 def _config_file(path: Path | None) -> TrackerConfig | None:
@@ -239,12 +245,6 @@ def _tracker(
         return Tracker(config, backend, camera=camera)
     override = base.updated(**changes) if base is not None else (changes or None)
     return Tracker.from_map(load_map, backend, override, rebuild=rebuild, camera=camera)
-
-
-def _is_onnx_export(weights: str) -> bool:
-    from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME
-
-    return (Path(weights) / MANIFEST_NAME).is_file()
 
 
 def _str(path: Path | None) -> str | None:

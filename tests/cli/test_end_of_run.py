@@ -59,7 +59,7 @@ def test_demo_without_the_viz_extra_writes_every_non_plot_output(tmp_path: Path)
     names = {p.name for p in tmp_path.iterdir()}
     assert names >= NON_PLOT_OUTPUTS and "trajectory.png" not in names
     run = json.loads((tmp_path / "run.json").read_text())
-    assert "kvtracker-sdk[viz]" in run["skipped_outputs"]["trajectory.png"]
+    assert 'pip install -e ".[viz]"' in run["skipped_outputs"]["trajectory.png"]
     assert "trajectory.png not written" in result.stdout  # the summary says what is missing
     assert "trajectory.png not written" in result.stderr  # and a warning is logged
 
