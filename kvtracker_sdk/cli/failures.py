@@ -135,6 +135,12 @@ _CODES: tuple[tuple[type[BaseException], ExitCode, Hint], ...] = (
         ExitCode.INPUT,
         "every frame of a run must be an HxWx3 colour image of the first frame's size",
     ),
+    (
+        errors.ResolutionChangedError,
+        ExitCode.INPUT,
+        "every frame of a run must have the first frame's size (with --load-map: the size the "
+        "map's frames had); resize the frames or start a new run",
+    ),
     (errors.MaskError, ExitCode.INPUT, "masks are images of the frames' size, one per frame "
      "(--masks DIR, natural order); each must select some pixels"),
     (errors.BBoxError, ExitCode.INPUT, "--bbox is x0,y0,x1,y1 in pixels of the frame, "

@@ -86,7 +86,7 @@ class CaptureSource(ImageSource):
             opened = bool(capture.isOpened())
         if not opened:
             capture.release()
-            said = f" (OpenCV: {messages[-1]})" if messages else ""
+            said = f" (OpenCV: {messages[0]})" if messages else ""
             what = f"camera {self.label}" if camera else self.label
             reason = ("no such camera, or it is busy or not permitted" if camera else
                       "the stream is unreachable or in a format OpenCV cannot decode")

@@ -5,7 +5,7 @@ VIDEOIO(V4L2:/dev/video3): can't open camera by index`` straight to file descrip
 logging never sees them, and in a terminal they tear through the CLI's own output. There is no
 Python hook for that output (``cv2.utils.logging`` only sets the level), so while a capture is
 being opened, descriptor 2 is pointed at a temporary file and what OpenCV wrote is logged
-afterwards as ``opencv_message`` events (WARNING). Only the open is wrapped: it is short and
+afterwards as ``opencv_message`` events (INFO: the CLI shows them with -v). Only the open is wrapped: it is short and
 happens before tracking starts, so no other thread's output is expected on stderr meanwhile.
 """
 
@@ -47,4 +47,4 @@ def opencv_messages_logged(target: str) -> Iterator[list[str]]:
             text = sink.read().decode("utf-8", errors="replace")
             lines.extend(line.strip() for line in text.splitlines() if line.strip())
             for line in lines:
-                _log.warning("opencv_message", target=target, message=line)
+                _log.info("opencv_message", target=target, opencv=line)
