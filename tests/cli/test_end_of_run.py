@@ -95,7 +95,7 @@ def test_a_bad_frame_stops_the_run_and_keeps_what_was_tracked(
     assert "016.png: cannot decode" in result.stderr
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == 16 and run["valid_poses"] == 16
-    assert run["stopped_by"].startswith("SourceError") and run["bad_frames"]["count"] == 1
+    assert run["stopped_by"].startswith("FrameDecodeError") and run["bad_frames"]["count"] == 1
     assert len(read_tum(out / "trajectory.txt")) == 16
     assert read_map_info(saved).num_keyframes == run["map"]["keyframes"] >= 2
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 import inspect
 import os
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 from kvtracker_sdk import errors
 from kvtracker_sdk.cli.failures import EXIT_CODES, ExitCode, exit_code_for
@@ -107,7 +107,7 @@ def test_the_install_command_lists_each_extras_packages_as_pyproject_does() -> N
     pyproject = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
     extras = pyproject["project"]["optional-dependencies"]
     listed = {name: tuple(packages) for name, packages in extras.items() if name != "dev"}
-    assert errors.EXTRA_PACKAGES == listed
+    assert listed == errors.EXTRA_PACKAGES
     command = errors.install_command("ros")
     assert 'pip install -e ".[ros]"' in command and "'rosbags>=0.10'" in command
     assert "kvtracker-sdk[" not in command  # the package is not on PyPI
