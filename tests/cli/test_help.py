@@ -3,7 +3,9 @@ required) and its help text survives rendering whole (no ``[default: 50]`` or ``
 
 from __future__ import annotations
 
+import json
 import re
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -76,3 +78,19 @@ def test_the_extras_are_named() -> None:
     blocks = _option_blocks(invoke("track", "--help").stdout)
     assert "[view] extra" in blocks["--view"]
     assert "[ros] extra" in blocks["--ros2-bag"]
+
+
+def test_eval_many_help_shows_the_example_manifest_and_the_examples_are_valid() -> None:
+    from kvtracker_sdk.scale.manifest import load_manifest
+
+    examples = Path(__file__).parents[2] / "examples" / "manifests"
+    shown = invoke("eval-many", "--help").stdout
+    block = shown[shown.index("{\n"): shown.index("\n  }\n") + 4]  # the example, indented
+    example = examples / "tum_and_simulated.json"
+    assert json.loads(block) == json.loads(example.read_text())  # the help shows the file
+    assert '"name"' in block and "examples/manifests/simulated.json" in " ".join(shown.split())
+    both = load_manifest(example)
+    assert [s.source is not None for s in both.sequences] == [True, False]  # real, simulated
+    assert both.model is not None and both.model.weights.is_absolute()  # relative to the file
+    offline = load_manifest(examples / "simulated.json")
+    assert offline.model is None and all(s.simulated for s in offline.sequences)
