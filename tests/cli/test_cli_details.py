@@ -25,11 +25,18 @@ TRACK = ("--resolution", "224", "--keyframe-interval", "5")
 DEMO = ("demo", "--frames", "12", "--size", "60x80", "--resolution", "224")
 
 
+def _loaded_stand_in(weights: Any) -> types.SimpleNamespace:
+    """What ``load_model`` returns, without building the model (the export is cut short)."""
+    return types.SimpleNamespace(family="pi3", fingerprint="f" * 16, model=None, name="pi3",
+                                 path=Path(weights))
+
+
 def test_exporting_weights_for_onnx_is_announced_before_it_starts(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, golden_weights: Path, simulated_frames: Path
 ) -> None:
     dev_dependency("onnxruntime")
     monkeypatch.setenv("KVTRACKER_CACHE_DIR", str(tmp_path / "cache"))  # no cached export
+    monkeypatch.setattr("kvtracker_sdk.export_onnx.reuse.load_model", _loaded_stand_in)
 
     def export_model(*_: Any, **__: Any) -> None:  # the minutes-long export, cut short
         raise BackendError("export stopped by the test")
@@ -51,8 +58,8 @@ def test_a_cached_export_is_reused_without_the_export_notice(
     dev_dependency("onnxruntime")
     from kvtracker_sdk.export_onnx import reuse
 
-    fingerprint = reuse.load_model(golden_weights).fingerprint
-    cached = types.SimpleNamespace(weights_fingerprint=fingerprint, sha256={})
+    monkeypatch.setattr(reuse, "load_model", _loaded_stand_in)
+    cached = types.SimpleNamespace(weights_fingerprint="f" * 16, sha256={})
     monkeypatch.setattr(reuse, "read_manifest", lambda folder: cached)  # a valid cached export
     monkeypatch.setattr(reuse, "verify_files", lambda folder, sha256: None)
     monkeypatch.setattr(reuse, "export_model", lambda *_, **__: pytest.fail("exported again"))
