@@ -27,7 +27,7 @@ def eval_many(
         help="Manifest (JSON or YAML): model, configs, sequences.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("eval_many"),
     engine: Annotated[Engine, typer.Option(
-        help="serial (this process), local (process pool) or ray.")] = Engine.LOCAL,
+        help="serial (this process), local (process pool) or ray ([ray] extra).")] = Engine.LOCAL,
     workers: Annotated[int, typer.Option(
         help="Worker processes or Ray actors (each loads the model once).")] = 2,
 ) -> None:

@@ -95,7 +95,7 @@ def export_onnx_command(
         show_default=False)],
     weights: Annotated[str, typer.Option(
         help="Checkpoint: a model name (pi3, da3-small, ...), a .safetensors file, a folder "
-             "holding one, or a hub id.")] = DEFAULT_WEIGHTS,
+             "holding one, or a hub id ([hub] extra to download).")] = DEFAULT_WEIGHTS,
     config: Annotated[str | None, typer.Option(
         help="A preset ('large' for Pi3, 'da3-small', ...) or a config JSON file. "
              "[default: inferred from the checkpoint]")] = None,

@@ -36,8 +36,11 @@ def track(
         "camera index (0) or stream URL (rtsp://...).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help=_OUT_HELP)] = Path("kvtracker_out"),
     weights: Annotated[str, typer.Option(
-        help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
-    backend: Annotated[BackendKind, typer.Option(help="Inference runtime.")] = BackendKind.TORCH,
+        help="Checkpoint: a .safetensors file, a folder holding one, a preset (da3-small) or a "
+        "hub id ([hub] extra to download).")] = DEFAULT_WEIGHTS,
+    backend: Annotated[BackendKind, typer.Option(
+        help="Inference runtime: torch, onnx ([onnx] extra) or openvino ([openvino] extra; "
+        "exporting a checkpoint for it needs [onnx] too).")] = BackendKind.TORCH,
     device: Annotated[str, typer.Option(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
     dtype: Annotated[ComputeDtype, typer.Option(
@@ -71,8 +74,8 @@ def track(
         "--async-mapping/--sync-mapping", help="Rebuild the map on a worker thread. "
         "[default: async for a camera or stream, sync for files]")] = None,
     camera: Annotated[Path | None, typer.Option(
-        help="Intrinsics file (JSON/YAML: fx fy cx cy width height distortion, or ROS "
-        "CameraInfo). [default: the dataset's published ones, if any]")] = None,
+        help="Intrinsics file (JSON, or YAML with the [yaml] extra: fx fy cx cy width "
+        "height distortion, or ROS CameraInfo). [default: the dataset's published ones, if any]")] = None,
     realtime: Annotated[bool, typer.Option(
         "--realtime", help="Replay a file at its own frame rate, like a live camera. [default: off]")] = False,
     config_file: Annotated[Path | None, typer.Option(
