@@ -1,5 +1,5 @@
-"""The state diagrams of the states guide and the architecture notes are drawn from the transition table
-(``tracking.state_diagram``): a drawing that drifts from ``tracking/states.py`` fails here."""
+"""The state diagrams of the states guide and the architecture notes are drawn from the
+transition table (``tracking.state_diagram``): a drawing that drifts from ``tracking/states.py`` fails here."""
 
 from __future__ import annotations
 
