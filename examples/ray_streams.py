@@ -8,7 +8,7 @@ With ``--check`` every stream is also run in this process and compared (they mus
     python examples/ray_streams.py --streams 4 --frames 90 --check
 
 Ray is started bound to 127.0.0.1, dashboard off, usage statistics off
-(``kvtracker_sdk.scale.ray_runtime``). Needs ``pip install 'kvtracker-sdk[ray]'``.
+(``kvtracker_sdk.scale.ray_runtime``). Needs the ``[ray]`` extra (``pip install -e ".[ray]"`` in the clone).
 """
 
 from __future__ import annotations

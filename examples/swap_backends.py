@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kvtracker_sdk import Backend, BackendMismatchError, Tracker, TrackerConfig
+from kvtracker_sdk import Backend, Tracker, TrackerConfig
+from kvtracker_sdk.errors import BackendMismatchError
 
 Frames = Iterator[tuple[np.ndarray, float]]  # (RGB uint8 [H, W, 3], timestamp in seconds)
 

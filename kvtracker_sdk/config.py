@@ -222,8 +222,8 @@ class ThreadingConfig(_Section):
 
 class MapCompactionConfig(_Section):
     """Smaller maps and cheaper keyframes (issue 16; ``kvtracker_sdk.cache.pruning``). Every
-    switch is off by default: the accuracy cost on real weights is unmeasured (README,
-    "Compact maps")."""
+    switch is off by default: the accuracy cost on real weights is unmeasured (``benchmarks/README.md``,
+    "Token pruning")."""
 
     keep_ratio: float | None = Field(default=None, gt=0.0, le=1.0)
     """Token pruning once per rebuild: the fraction of each global layer's cached tokens kept,

@@ -17,6 +17,8 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   ├── BBoxError
     │   ├── ResolutionChangedError
     │   ├── SourceError                  an image source (folder, video, dataset) cannot be read
+    │   │   ├── SourceOpenError          cannot be opened at all: no such camera, stream or path
+    │   │   └── FrameDecodeError         one frame of an opened source cannot be decoded
     │   ├── TrajectoryError              a trajectory file or pose array is malformed
     │   └── EvaluationError              trajectories cannot be compared (no matches, too short)
     ├── StateError                       call not allowed in the current state (closed tracker, ...)
@@ -67,11 +69,14 @@ __all__ = [
     "MappingFailedError",
     "MaskError",
     "MissingDependencyError",
+    "install_command",
     "ModelError",
     "NonFiniteImageError",
     "OutputError",
     "ResolutionChangedError",
     "SourceError",
+    "SourceOpenError",
+    "FrameDecodeError",
     "StateError",
     "TrackingFailedError",
     "TrajectoryError",
@@ -80,7 +85,15 @@ __all__ = [
 
 
 class KVTrackerError(Exception):
-    """Base class of every error raised by kvtracker-sdk."""
+    """Base class of every error raised by kvtracker-sdk.
+
+    ``hint`` (optional) says what to do about this very error where the raising code knows better
+    than its class (the CLI prints it instead of the class's generic hint).
+    """
+
+    def __init__(self, *args: object, hint: str | None = None) -> None:
+        super().__init__(*args)
+        self.hint = hint
 
 
 class ConfigError(KVTrackerError, ValueError):
@@ -117,6 +130,25 @@ class ResolutionChangedError(InputError):
 
 class SourceError(InputError):
     """An image source cannot be opened or read (missing path, bad list file, undecodable frame)."""
+
+
+class SourceOpenError(SourceError):
+    """A source cannot be opened at all: ``kind`` says which (``"camera"``: no such camera index,
+    or it is busy or forbidden; ``"stream"``: the URL is unreachable or OpenCV cannot decode it;
+    ``"path"``: no such file or folder; ``"video"``: a file OpenCV cannot decode). ``target`` is
+    what was asked for. Raised when the source
+    is opened, before anything is tracked or written."""
+
+    def __init__(
+        self, message: str, *, kind: str = "path", target: str = "", hint: str | None = None
+    ) -> None:
+        super().__init__(message, hint=hint)
+        self.kind = kind
+        self.target = target
+
+
+class FrameDecodeError(SourceError):
+    """One frame of an opened source cannot be decoded (a damaged or non-image file)."""
 
 
 class TrajectoryError(InputError):
@@ -198,7 +230,42 @@ class TrackingFailedError(BackendError):
 
 
 class MissingDependencyError(BackendError, ImportError):
-    """An optional dependency is missing; the message names the extra to install."""
+    """An optional dependency is missing; the message names the extra to install (``extra``,
+    e.g. ``"ros"``; :func:`install_command` says how to install it)."""
+
+    def __init__(self, message: str, *, extra: str | None = None, hint: str | None = None) -> None:
+        super().__init__(message, hint=hint)
+        self.extra = extra
+
+    @classmethod
+    def for_extra(cls, extra: str, what: str) -> MissingDependencyError:
+        """``what`` (e.g. "writing ROS 2 bags needs rosbags") plus how to install ``extra``."""
+        return cls(f"{what}: {install_command(extra)}", extra=extra)
+
+
+# The packages of each optional extra (pyproject.toml's [project.optional-dependencies]; a test
+# keeps the two equal): the install command names them, because the package is not on PyPI and
+# `pip install kvtracker-sdk[ros]` finds nothing.
+EXTRA_PACKAGES: dict[str, tuple[str, ...]] = {
+    "onnx": ("onnxruntime>=1.17", "onnx>=1.15", "onnxscript>=0.1", "onnx-ir>=1.0"),
+    "openvino": ("openvino>=2024.0",),
+    "hub": ("huggingface_hub>=0.20",),
+    "viz": ("matplotlib>=3.7", "rerun-sdk>=0.18"),
+    "ray": ("ray>=2.40", "pyyaml>=6"),
+    "yaml": ("pyyaml>=6.0",),
+    "view": ("viser>=1.0",),
+    "ros": ("rosbags>=0.10",),
+    "colmap": ("pycolmap>=3.10",),
+    "docs": ("mkdocs>=1.6", "mkdocstrings[python]>=0.26"),
+}
+
+
+def install_command(extra: str) -> str:
+    """How to install an optional extra, in a form that works from a clone of the repository
+    and anywhere else: ``pip install -e ".[ros]"`` in the clone, or its packages directly."""
+    packages = " ".join(f"'{p}'" for p in EXTRA_PACKAGES.get(extra, ()))
+    direct = f" (or: pip install {packages})" if packages else ""
+    return f'install the [{extra}] extra: pip install -e ".[{extra}]" in your kvtracker-sdk clone{direct}'
 
 
 class MapError(KVTrackerError):

@@ -277,8 +277,10 @@ class FrameResult:
     ``intrinsics_source`` says whether it was given, predicted by the network (DA3) or
     estimated from the network's local points (Pi3); both None when none is known yet.
     Object mode: ``region`` is the object's region in this frame (``ObjectRegion``; None in scene
-    mode) and ``T_cam_object`` the object frame (``ObjectFrame``) in this camera's frame, 4x4
-    (None without a valid pose or before the map holds object points).
+    mode) and ``T_cam_object`` the object frame in this camera's frame, 4x4 (None without a
+    valid pose or before the map holds object points); ``object_frame`` is the ``ObjectFrame``
+    it refers to (``T_cam_object = inv(T_world_cam) @ object_frame.T_world_object``; the object
+    frame moves a little with each map rebuild: its ``map_generation`` says which).
     """
 
     frame_index: int
@@ -297,6 +299,7 @@ class FrameResult:
     intrinsics_source: IntrinsicsSource | None = None
     region: ObjectRegion | None = None
     T_cam_object: np.ndarray | None = None
+    object_frame: ObjectFrame | None = None
 
     def __post_init__(self) -> None:
         if self.T_cam_object is not None:

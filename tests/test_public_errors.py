@@ -25,7 +25,10 @@ import kvtracker_sdk as sdk
 from kvtracker_sdk import errors
 from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME, read_manifest
 from kvtracker_sdk.backends.simulated_scene import orbit
+from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.cli.failures import ExitCode
+from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.io.map_file import load_map
 from kvtracker_sdk.io.trajectory import read_tum
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.pi3.config import Pi3Config
@@ -65,7 +68,7 @@ def sim_tracker() -> Any:
 
 
 CASES: list[tuple[str, type[errors.KVTrackerError], Callable[[], Any]]] = [
-    ("load_map NUL path", errors.MapIOError, lambda: sdk.load_map(NUL_PATH)),
+    ("load_map NUL path", errors.MapIOError, lambda: load_map(NUL_PATH)),
     ("read_map_info NUL path", errors.MapIOError, lambda: sdk.read_map_info(NUL_PATH)),
     ("read_tum NUL path", errors.TrajectoryError, lambda: read_tum(NUL_PATH)),
     ("load_model NUL path", errors.ModelError, lambda: load_model(NUL_PATH)),
@@ -81,8 +84,8 @@ CASES: list[tuple[str, type[errors.KVTrackerError], Callable[[], Any]]] = [
     ),
     ("Pose of a 3-vector", errors.InputError, lambda: sdk.Pose(np.zeros(3))),
     ("Pose of text", errors.InputError, lambda: sdk.Pose([["a"] * 4] * 4)),  # type: ignore[arg-type]
-    ("Sim3 scale 0", errors.InputError, lambda: sdk.Sim3(np.eye(3), np.zeros(3), 0.0)),
-    ("Sim3 2x2 rotation", errors.InputError, lambda: sdk.Sim3(np.eye(2), np.zeros(3))),
+    ("Sim3 scale 0", errors.InputError, lambda: Sim3(np.eye(3), np.zeros(3), 0.0)),
+    ("Sim3 2x2 rotation", errors.InputError, lambda: Sim3(np.eye(2), np.zeros(3))),
     ("Pi3Config unknown field", errors.ConfigError, lambda: Pi3Config(dim=-1)),  # type: ignore[call-arg]
     (
         "Pi3Config bad value",
@@ -90,7 +93,7 @@ CASES: list[tuple[str, type[errors.KVTrackerError], Callable[[], Any]]] = [
         lambda: Pi3Config(**{**Pi3Config.large().model_dump(), "patch_size": "x"}),
     ),
     ("DA3Config bad value", errors.ConfigError, lambda: DA3Config(patch_size="x")),  # type: ignore[arg-type]
-    ("CacheLayout negative heads", errors.CacheError, lambda: sdk.CacheLayout((1,), -2, 8)),
+    ("CacheLayout negative heads", errors.CacheError, lambda: CacheLayout((1,), -2, 8)),
     ("TrackerConfig bad value", errors.ConfigError, lambda: sdk.TrackerConfig(resolution=5)),  # type: ignore[arg-type]
 ]
 

@@ -1,5 +1,5 @@
-"""The state diagrams of the README and the architecture notes are drawn from the transition table
-(``tracking.state_diagram``): a drawing that drifts from ``tracking/states.py`` fails here."""
+"""The state diagrams of the states guide and the architecture notes are drawn from the
+transition table (``tracking.state_diagram``): a drawing that drifts from ``tracking/states.py`` fails here."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from tests.helpers import PROJECT_ROOT
 FENCE = re.compile(r"```mermaid\n(stateDiagram-v2\n.*?)```", re.DOTALL)
 
 
-@pytest.mark.parametrize("document", ["README.md", "docs/architecture.md"])
+@pytest.mark.parametrize("document", ["docs/states.md", "docs/architecture.md"])
 def test_the_drawn_state_machine_is_the_table(document: str) -> None:
     blocks = FENCE.findall((PROJECT_ROOT / document).read_text(encoding="utf-8"))
     assert len(blocks) == 1, f"{document}: expected one mermaid state diagram"

@@ -31,9 +31,8 @@ def import_onnxruntime() -> Any:
     try:
         return importlib.import_module("onnxruntime")
     except ImportError as exc:
-        raise MissingDependencyError(
-            f"the ONNX backend needs onnxruntime: pip install 'kvtracker-sdk[onnx]' ({exc})"
-        ) from exc
+        raise MissingDependencyError.for_extra(
+            "onnx", f"the ONNX backend needs onnxruntime ({exc})") from exc
 
 
 # SDK device name -> the execution provider serving it (CPU stays listed as the fallback)

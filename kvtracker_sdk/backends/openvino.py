@@ -18,7 +18,7 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
 ``openvino_runtime``) that grows with the map: at 32 keyframes DA3-Small's poses deviated about
 twice as much as PyTorch's bf16 (Pi3 ``large``'s did not), and "float32" was nearly as fast
-(README, model choice). ``info.accelerations`` reports what the plugin chose: device, precision,
+(``benchmarks/README.md``, "CPU runtimes side by side"). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
 
 openvino is imported when a backend is created (``MissingDependencyError`` names the

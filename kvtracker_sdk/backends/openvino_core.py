@@ -54,10 +54,8 @@ def import_openvino() -> Any:
         try:
             return importlib.import_module("openvino")
         except ImportError as exc:
-            raise MissingDependencyError(
-                "the OpenVINO backend needs openvino: pip install 'kvtracker-sdk[openvino]' "
-                f"({exc})"
-            ) from exc
+            raise MissingDependencyError.for_extra(
+                "openvino", f"the OpenVINO backend needs openvino ({exc})") from exc
         finally:
             if first and saved is _ABSENT:
                 sys.modules.pop(_TELEMETRY, None)

@@ -53,6 +53,8 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,  # errors are reported by failures.reports_errors
+    # help texts are plain text: rich markup would eat "[default: 50]" and "[view]"
+    rich_markup_mode=None,
 )
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import enum
 import importlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,12 +43,14 @@ def open_backend(
     device: str = "cpu",
     dtype: ComputeDtype | str = "float32",
     threads: int | None = None,
+    on_export: Callable[[Path], None] | None = None,
 ) -> Backend:
     """The backend of ``kind`` over ``weights``; typed errors for missing runtimes or weights.
 
     ``threads`` sets torch's intra-op CPU threads (process-wide: the CLI owns the process; None:
     chosen from the free cores, ``kvtracker_sdk/threads.py``) or OpenVINO's inference threads; the
-    ONNX backend chooses its own.
+    ONNX backend chooses its own. ``on_export(folder)``: called when a checkpoint is about to
+    be exported for the ONNX or OpenVINO backend (not when its cached export is reused).
     """
     dtype_name = ComputeDtype(dtype).value
     if threads is not None and threads < 1:
@@ -67,21 +70,18 @@ def open_backend(
         try:
             module = importlib.import_module("kvtracker_sdk.export_onnx.reuse")
         except ImportError as exc:
-            raise MissingDependencyError(
-                f"the ONNX backend needs onnxruntime: pip install 'kvtracker-sdk[onnx]' ({exc})"
-            ) from exc
-        backend: Backend = module.onnx_backend(weights, device=device)
+            raise MissingDependencyError.for_extra(
+                "onnx", f"the ONNX backend needs onnxruntime ({exc})") from exc
+        backend: Backend = module.onnx_backend(weights, device=device, on_export=on_export)
         return backend
     if kind is BackendKind.OPENVINO:
         try:  # openvino itself is imported when the backend is made (MissingDependencyError)
             module = importlib.import_module("kvtracker_sdk.export_onnx.reuse")
         except ImportError as exc:
-            raise MissingDependencyError(
-                f"the OpenVINO backend cannot be imported: {exc}; pip install "
-                "'kvtracker-sdk[openvino]'"
-            ) from exc
+            raise MissingDependencyError.for_extra(
+                "openvino", f"the OpenVINO backend cannot be imported ({exc})") from exc
         served: Backend = module.openvino_backend(
-            weights, device=device, precision=dtype_name, threads=threads
+            weights, device=device, precision=dtype_name, threads=threads, on_export=on_export
         )
         return served
     raise ConfigError(f"unknown backend {kind!r}")  # pragma: no cover - typer checks the choice

@@ -70,13 +70,13 @@ def demo(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("kvtracker_demo"),
     gt: Annotated[Path | None, typer.Option(
         "--gt", help="Drive the simulation with this TUM groundtruth.txt instead of the built-in "
-        "hand-held orbit.")] = None,
+        "hand-held orbit. [default: none: the orbit]")] = None,
     frames: Annotated[int | None, typer.Option(
         help="Frames to run (at 30 Hz). [default: 600 for the orbit, all of --gt]")] = None,
     size: Annotated[str, typer.Option(help="Rendered frame size HEIGHTxWIDTH.")] = "240x320",
     loss: Annotated[str | None, typer.Option(
         help="Frames START:STOP where the camera is covered. [default: 1.5 s from 55 %]")] = None,
-    no_loss: Annotated[bool, typer.Option("--no-loss", help="Never lose tracking.")] = False,
+    no_loss: Annotated[bool, typer.Option("--no-loss", help="Never lose tracking. [default: off]")] = False,
     noise_cm: Annotated[float | None, typer.Option(
         help="Pose noise per axis (cm). [default: 1.0; 0.3 on the desk, seen from 0.5 m]")] = None,
     noise_deg: Annotated[float | None, typer.Option(
@@ -89,17 +89,17 @@ def demo(
         "next frame).")] = "scene",
     keyframe_interval: Annotated[int, typer.Option(help="A keyframe every N frames.")] = 50,
     async_mapping: Annotated[bool, typer.Option(
-        "--async-mapping", help="Rebuild the map on a worker thread.")] = False,
+        "--async-mapping", help="Rebuild the map on a worker thread. [default: off]")] = False,
     rerun: Annotated[Path | None, typer.Option(
-        help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
+        help="Also record the run as a rerun .rrd file ([viz] extra). [default: none]", metavar="FILE.rrd")] = None,
     voxel_size: Annotated[float | None, typer.Option(
         help="Voxel edge of points.ply (0 keeps all). [default: auto]")] = None,
     view: Annotated[bool, typer.Option(
-        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra).")] = False,
+        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra). [default: off]")] = False,
     view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
-    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file.")] = None,
+    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file. [default: none]")] = None,
     ros2_bag: Annotated[Path | None, typer.Option(
-        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra).", metavar="DIR")] = None,
+        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,
 ) -> None:
     """Run the tracker offline on a simulated hand-held camera and write every output."""
     from kvtracker_sdk.backends.simulated import SimulatedBackend

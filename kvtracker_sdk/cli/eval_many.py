@@ -27,11 +27,30 @@ def eval_many(
         help="Manifest (JSON or YAML): model, configs, sequences.", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("eval_many"),
     engine: Annotated[Engine, typer.Option(
-        help="serial (this process), local (process pool) or ray.")] = Engine.LOCAL,
+        help="serial (this process), local (process pool) or ray ([ray] extra).")] = Engine.LOCAL,
     workers: Annotated[int, typer.Option(
         help="Worker processes or Ray actors (each loads the model once).")] = 2,
 ) -> None:
-    """Evaluate many sequences and configurations; print and write one table."""
+    """Evaluate many sequences and configurations; print and write one table.
+
+    MANIFEST is JSON (or YAML, [yaml] extra); its paths are relative to it. "sequences": each
+    has a unique "name" and either a "source" (anything `kvtracker track` reads; TUM and
+    7-Scenes folders bring their ground truth, else add "ground_truth": a TUM file) or a
+    "simulated" camera ("orbit_frames": N, or "ground_truth": a TUM file; needs no weights).
+    "configs": named TrackerConfig overrides, every sequence runs under each. "model": the
+    weights real sequences run on, loaded once per worker. Example
+    (examples/manifests/tum_and_simulated.json; examples/manifests/simulated.json runs offline):
+
+    \b
+    {
+      "model": {"weights": "../../weights/da3-small/model.safetensors", "dtype": "bfloat16"},
+      "configs": {"default": {}, "d224": {"resolution": 224}},
+      "sequences": [
+        {"name": "fr2_desk", "source": "../../data/rgbd_dataset_freiburg2_desk", "frames": 300},
+        {"name": "sim_orbit", "simulated": {"orbit_frames": 300, "seed": 1}}
+      ]
+    }
+    """
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from kvtracker_sdk.scale.manifest import load_manifest

@@ -60,14 +60,14 @@ def evaluate(
         help="Seconds added to EST's stamps before matching.")] = 0.0,
     delta: Annotated[int, typer.Option(help="RPE: frames between the two poses of a pair.")] = 1,
     all_pairs: Annotated[bool, typer.Option(
-        "--all-pairs", help="RPE: every pair (i, i+delta), not only i = 0, delta, 2 delta, ...")] = False,
+        "--all-pairs", help="RPE: every pair (i, i+delta), not only i = 0, delta, 2 delta, ... [default: off]")] = False,
     cm_deg: Annotated[str, typer.Option(
         help="cm-degree recall thresholds k (k cm and k degrees).")] = "1,3,5",
     plot: Annotated[Path | None, typer.Option(
-        help="Plot file. [default: EST's name + _eval.png, beside EST]")] = None,
-    no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write a plot.")] = False,
+        help="Plot file ([viz] extra). [default: EST's name + _eval.png, beside EST]")] = None,
+    no_plot: Annotated[bool, typer.Option("--no-plot", help="Do not write a plot. [default: off]")] = False,
     json_path: Annotated[Path | None, typer.Option(
-        "--json", help="Also write the numbers as JSON.")] = None,
+        "--json", help="Also write the numbers as JSON. [default: none]")] = None,
 ) -> None:
     """Score EST against GT: ATE and RPE after alignment, cm-degree recall, a plot."""
     from kvtracker_sdk.eval.plots import plot_trajectory

@@ -42,10 +42,10 @@ def export(
         metavar="RUN_OR_MAP", help="A .kvmap file, or a run folder holding one.")],
     out: Annotated[Path, typer.Argument(metavar="OUT", help="Output folder (created).")],
     all_frames: Annotated[bool, typer.Option(
-        "--all-frames", help="Also every tracked frame (a `track` run folder, scene mode).")] = False,
+        "--all-frames", help="Also every tracked frame (a `track` run folder, scene mode). [default: off]")] = False,
     intrinsics: Annotated[str | None, typer.Option(
-        help="Calibration fx,fy,cx,cy,W,H (pixels; pixel centres at integers); default: fitted "
-        "to the map's points.")
+        help="Calibration fx,fy,cx,cy,W,H (pixels; pixel centres at integers). "
+        "[default: fitted to the map's points]")
     ] = None,
     min_confidence: Annotated[float, typer.Option(help="Confidence filter of the points.")] = 0.5,
     pixel_stride: Annotated[int, typer.Option(

@@ -95,19 +95,19 @@ def export_onnx_command(
         show_default=False)],
     weights: Annotated[str, typer.Option(
         help="Checkpoint: a model name (pi3, da3-small, ...), a .safetensors file, a folder "
-             "holding one, or a hub id.")] = DEFAULT_WEIGHTS,
+             "holding one, or a hub id ([hub] extra to download).")] = DEFAULT_WEIGHTS,
     config: Annotated[str | None, typer.Option(
         help="A preset ('large' for Pi3, 'da3-small', ...) or a config JSON file. "
              "[default: inferred from the checkpoint]")] = None,
     random_weights: Annotated[bool, typer.Option(
-        "--random-weights", help="No checkpoint: random weights of --config (tests, benchmarks).")] = False,
+        "--random-weights", help="No checkpoint: random weights of --config (tests, benchmarks). [default: off]")] = False,
     seed: Annotated[int, typer.Option(help="Seed of --random-weights.")] = 0,
     check_size: Annotated[str, typer.Option(
         help="H x W of the ORT-vs-PyTorch check (multiples of 14).")] = "126x168",
     opset: Annotated[int, typer.Option(help="ONNX opset.")] = 20,
     overwrite: Annotated[bool, typer.Option(
-        "--overwrite", help="Replace --out if it exists (only once the new export is complete).")] = False,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON.")] = False,
+        "--overwrite", help="Replace --out if it exists (only once the new export is complete). [default: off]")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the manifest as JSON. [default: off]")] = False,
 ) -> None:
     """Export a Pi3 or Depth Anything 3 checkpoint to ONNX graphs that the onnx backend serves."""
     from kvtracker_sdk.export_onnx import export_onnx

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 
 from kvtracker_sdk.cli.run_loop import InputFrame
-from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError, SourceError
+from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError
 from kvtracker_sdk.io.regular_file import read_regular_bytes
 from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
 
@@ -56,10 +56,10 @@ class MaskFolder:
 
     def __init__(self, folder: Path) -> None:
         if not folder.is_dir():
-            raise SourceError(f"mask folder {folder} is not a folder")
+            raise MaskError(f"mask folder {folder} is not a folder")
         files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
         if not files:
-            raise SourceError(f"mask folder {folder} holds no images")
+            raise MaskError(f"mask folder {folder} holds no images")
         for path in files:  # a FIFO named 3.png would block the run when its mask is read
             if not path.is_file():
                 raise MaskError(f"mask folder {folder}: {path.name} is not a regular file")

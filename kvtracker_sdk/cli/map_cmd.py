@@ -93,7 +93,7 @@ def _text(facts: dict[str, Any]) -> str:
 def map_info(
     ctx: typer.Context,
     path: Annotated[Path, typer.Argument(help="A .kvmap file.", show_default=False)],
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object. [default: off]")] = False,
 ) -> None:
     """Show what a map file holds (header only; the tensors are not read)."""
     from kvtracker_sdk.io.map_file import read_map_info

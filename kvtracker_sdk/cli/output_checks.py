@@ -17,17 +17,44 @@ from pathlib import Path
 
 from kvtracker_sdk.errors import OutputError
 
-__all__ = ["check_output_file", "check_output_folder"]
+__all__ = [
+    "check_output_file",
+    "check_output_folder",
+    "forget_created_folders",
+    "remove_created_folders_if_empty",
+]
 
 _PROBE_PREFIX = ".kvtracker-write-check-"
+
+# Folders the checks created in this command (outermost first): a command that fails before
+# writing into them removes them again, so an early failure (bad --weights, a camera that does
+# not open) leaves no empty --out behind. One CLI command per process; reset per command.
+_created: list[Path] = []
+
+
+def forget_created_folders() -> None:
+    """Start a command: no folder created yet."""
+    _created.clear()
+
+
+def remove_created_folders_if_empty() -> None:
+    """Remove the folders the checks created, innermost first, where nothing was written."""
+    for folder in reversed(_created):
+        try:
+            folder.rmdir()  # only an empty folder: anything written in it stays
+        except OSError:
+            break  # not empty (or gone): its parents are not empty either
+    _created.clear()
 
 
 def check_output_folder(folder: Path, option: str) -> None:
     """``folder`` (e.g. ``--out``) exists or is created, and files can be created in it."""
     if folder.exists() and not folder.is_dir():
         raise OutputError(f"{option} {folder}: exists and is not a folder")
+    missing = [p for p in (folder, *folder.parents) if not p.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
+        _created.extend(reversed(missing))  # outermost first
     except OSError as exc:
         raise OutputError(f"{option} {folder}: cannot create the folder ({_reason(exc)})") from exc
     _probe(folder, option, folder)

@@ -19,12 +19,15 @@ from kvtracker_sdk.cli.run_loop import BadFramePolicy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import ConfigError, MaskError
+from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import StateReason
 
 if TYPE_CHECKING:
     from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["register", "track"]
+
+_log = get_logger(__name__)
 
 _OUT_HELP = "Output folder: trajectory.txt, keyframes.json, points.ply, trajectory.png, run.json."
 
@@ -37,8 +40,11 @@ def track(
         "camera index (0) or stream URL (rtsp://...).", show_default=False)],
     out: Annotated[Path, typer.Option("--out", "-o", help=_OUT_HELP)] = Path("kvtracker_out"),
     weights: Annotated[str, typer.Option(
-        help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
-    backend: Annotated[BackendKind, typer.Option(help="Inference runtime.")] = BackendKind.TORCH,
+        help="Checkpoint: a .safetensors file, a folder holding one, a preset (da3-small) or a "
+        "hub id ([hub] extra to download).")] = DEFAULT_WEIGHTS,
+    backend: Annotated[BackendKind, typer.Option(
+        help="Inference runtime: torch, onnx ([onnx] extra) or openvino ([openvino] extra; "
+        "exporting a checkpoint for it needs [onnx] too).")] = BackendKind.TORCH,
     device: Annotated[str, typer.Option(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
     dtype: Annotated[ComputeDtype, typer.Option(
@@ -51,13 +57,13 @@ def track(
     mode: Annotated[TrackingMode | None, typer.Option(
         help="scene: the camera in a static scene; object: a masked object. [default: scene]")] = None,
     masks: Annotated[Path | None, typer.Option(
-        help="Object mode: folder with one mask image per frame (natural order).")] = None,
+        help="Object mode: folder with one mask image per frame (natural order). [default: none]")] = None,
     bbox: Annotated[str | None, typer.Option(
         help="Object mode: x0,y0,x1,y1 box (pixels) used for every frame (with --bbox-once: "
-        "the first frame only).")] = None,
+        "the first frame only). [default: none]")] = None,
     bbox_once: Annotated[bool, typer.Option(
         "--bbox-once", help="Object mode: give --bbox with the first frame only; the tracker "
-        "predicts the object's region in every frame after it (object.json).")] = False,
+        "predicts the object's region in every frame after it (object.json). [default: off]")] = False,
     keyframe_interval: Annotated[int | None, typer.Option(
         help="Scene mode: a keyframe every N frames. [default: 50]")] = None,
     view_angle: Annotated[float | None, typer.Option(
@@ -72,23 +78,23 @@ def track(
         "--async-mapping/--sync-mapping", help="Rebuild the map on a worker thread. "
         "[default: async for a camera or stream, sync for files]")] = None,
     camera: Annotated[Path | None, typer.Option(
-        help="Intrinsics file (JSON/YAML: fx fy cx cy width height distortion, or ROS "
-        "CameraInfo). [default: the dataset's published ones, if any]")] = None,
+        help="Intrinsics file (JSON, or YAML with the [yaml] extra: fx fy cx cy width "
+        "height distortion, or ROS CameraInfo). [default: the dataset's published ones, if any]")] = None,
     realtime: Annotated[bool, typer.Option(
-        "--realtime", help="Replay a file at its own frame rate, like a live camera.")] = False,
+        "--realtime", help="Replay a file at its own frame rate, like a live camera. [default: off]")] = False,
     config_file: Annotated[Path | None, typer.Option(
-        "--config", help="TrackerConfig as JSON; the options above override it.")] = None,
+        "--config", help="TrackerConfig as JSON; the options above override it. [default: none]")] = None,
     load_map: Annotated[Path | None, typer.Option(
-        help="Relocalise against a saved .kvmap instead of starting a new map.")] = None,
+        help="Relocalise against a saved .kvmap instead of starting a new map. [default: none]")] = None,
     rebuild_map: Annotated[bool, typer.Option(
         "--rebuild-map", help="With --load-map: add keyframes even to a map whose frames another "
-        "preprocessing made (an older SDK); else such a map is only tracked against.")] = False,
-    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file.")] = None,
+        "preprocessing made (an older SDK); else such a map is only tracked against. [default: off]")] = False,
+    save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file. [default: none]")] = None,
     rerun: Annotated[Path | None, typer.Option(
-        help="Also record the run as a rerun .rrd file.", metavar="FILE.rrd")] = None,
+        help="Also record the run as a rerun .rrd file ([viz] extra). [default: none]", metavar="FILE.rrd")] = None,
     start: Annotated[int, typer.Option(help="First frame to use.")] = 0,
     stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames.")] = None,
+    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames. [default: all]")] = None,
     on_bad_frame: Annotated[BadFramePolicy, typer.Option(
         help="A frame that cannot be used (undecodable, another size, bad mask): stop the run "
         "there (outputs so far kept, exit code 3) or skip it (counted in the summary and "
@@ -99,10 +105,10 @@ def track(
     voxel_size: Annotated[float | None, typer.Option(
         help="Voxel edge of points.ply (world units; 0 keeps all). [default: auto]")] = None,
     view: Annotated[bool, typer.Option(
-        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra).")] = False,
+        "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra). [default: off]")] = False,
     view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
     ros2_bag: Annotated[Path | None, typer.Option(
-        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra).", metavar="DIR")] = None,
+        help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
     from kvtracker_sdk.io.camera_files import read_camera_file
@@ -198,15 +204,18 @@ def _check_object_inputs(
 
 
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:
-    """``open_backend`` under a spinner; exporting a checkpoint to ONNX (minutes for a full
-    model, on first use) is also announced as a line when stderr is not a terminal."""
-    if kind in (BackendKind.ONNX, BackendKind.OPENVINO) and not _is_onnx_export(weights):
-        text = (f"exporting {weights} to ONNX for {kind.value} (first use only: the export is "
-                "cached; minutes for a full model)")
-        with busy(state, text, announce=True):
-            return open_backend(kind, weights, **options)
+    """``open_backend`` under a spinner; an export of the checkpoint to ONNX (minutes for a
+    full model, on first use only) is announced as a line when it actually starts."""
+
+    def announce_export(folder: Path) -> None:
+        text = (f"exporting {weights} to ONNX for {kind.value} into {folder} (first use only: "
+                "the export is cached; minutes for a full model)")
+        _log.info(text)
+        if state.chatty:
+            state.console.print(text, highlight=False, markup=False)
+
     with busy(state, f"loading the weights {weights}"):
-        return open_backend(kind, weights, **options)
+        return open_backend(kind, weights, on_export=announce_export, **options)
 
 
 def _config_file(path: Path | None) -> TrackerConfig | None:
@@ -258,12 +267,6 @@ def _tracker(
         return Tracker(config, backend, camera=camera)
     override = base.updated(**changes) if base is not None else (changes or None)
     return Tracker.from_map(load_map, backend, override, rebuild=rebuild, camera=camera)
-
-
-def _is_onnx_export(weights: str) -> bool:
-    from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME
-
-    return (Path(weights) / MANIFEST_NAME).is_file()
 
 
 def _str(path: Path | None) -> str | None:

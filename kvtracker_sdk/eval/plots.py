@@ -122,7 +122,5 @@ def _matplotlib() -> tuple[Any, Any]:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
     except ImportError as exc:
-        raise MissingDependencyError(
-            "plots need matplotlib: pip install 'kvtracker-sdk[viz]'"
-        ) from exc
+        raise MissingDependencyError.for_extra("viz", "plots need matplotlib") from exc
     return Figure, FigureCanvasAgg

@@ -157,9 +157,8 @@ def _require_exporter() -> None:
         try:
             importlib.import_module(module)
         except ImportError as exc:
-            raise MissingDependencyError(
-                f"exporting to ONNX needs {module}: pip install 'kvtracker-sdk[onnx]' ({exc})"
-            ) from exc
+            raise MissingDependencyError.for_extra(
+                "onnx", f"exporting to ONNX needs {module} ({exc})") from exc
     import_onnxruntime()  # the export is checked with ONNX Runtime
 
 

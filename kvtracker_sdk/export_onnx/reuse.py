@@ -14,7 +14,7 @@ checked against PyTorch); later calls only hash the weights.
 from __future__ import annotations
 
 import os
-from collections.abc import Collection, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,9 +41,16 @@ def default_cache_dir() -> Path:
 
 
 def exported_folder(
-    weights: str | os.PathLike[str], *, cache_dir: str | os.PathLike[str] | None = None
+    weights: str | os.PathLike[str],
+    *,
+    cache_dir: str | os.PathLike[str] | None = None,
+    on_export: Callable[[Path], None] | None = None,
 ) -> Path:
-    """The export folder of a checkpoint, made on first use (see the module docstring)."""
+    """The export folder of a checkpoint, made on first use (see the module docstring).
+
+    ``on_export(folder)`` is called only when an export actually starts (not when a cached one
+    is reused): a caller can announce the minutes it takes.
+    """
     loaded = load_model(weights)
     folder = Path(cache_dir or default_cache_dir()) / f"{loaded.family}-{loaded.fingerprint}"
     try:
@@ -54,6 +61,8 @@ def exported_folder(
     except ModelError as exc:  # absent, incomplete, damaged or from another SDK: export again
         _log.info("cached onnx export unusable", folder=str(folder), reason=str(exc)[:300])
     _log.info("exporting checkpoint to onnx once", weights=str(loaded.path), folder=str(folder))
+    if on_export is not None:
+        on_export(folder)
     export_model(
         loaded.model,
         folder,
@@ -71,12 +80,13 @@ def onnx_backend(
     providers: Sequence[Any] | None = None,
     threads: int | None = None,
     cache_dir: str | os.PathLike[str] | None = None,
+    on_export: Callable[[Path], None] | None = None,
 ) -> OnnxBackend:
     """An ``OnnxBackend`` over an export folder, or over a checkpoint of either family (model
     name such as ``da3-small``, file, folder or hub id) exported on first use into
     ``cache_dir`` (``exported_folder``; that first call takes minutes for the full model).
-    Deployments ship the export folder."""
-    folder = _export_of(source, cache_dir)
+    Deployments ship the export folder. ``on_export``: as in ``exported_folder``."""
+    folder = _export_of(source, cache_dir, on_export)
     return OnnxBackend(folder, device=device, providers=providers, threads=threads)
 
 
@@ -88,23 +98,26 @@ def openvino_backend(
     threads: int | None = None,
     cache_dir: str | os.PathLike[str] | None = None,
     static_shapes: bool | Collection[str] | None = None,
+    on_export: Callable[[Path], None] | None = None,
 ) -> OpenVinoBackend:
     """An ``OpenVinoBackend`` over an export folder, or over a checkpoint exported on first use
     into ``cache_dir`` as ``onnx_backend`` does (the same folder serves both runtimes).
 
         backend = openvino_backend("da3-small", precision="bfloat16", threads=2)
     """
-    folder = _export_of(source, cache_dir)
+    folder = _export_of(source, cache_dir, on_export)
     return OpenVinoBackend(
         folder, device=device, precision=precision, threads=threads, static_shapes=static_shapes
     )
 
 
 def _export_of(
-    source: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None
+    source: str | os.PathLike[str],
+    cache_dir: str | os.PathLike[str] | None,
+    on_export: Callable[[Path], None] | None = None,
 ) -> Path:
     """``source`` itself when it is an export folder, else its checkpoint's export."""
     folder = Path(source)
     if not (folder / MANIFEST_NAME).is_file():
-        folder = exported_folder(source, cache_dir=cache_dir)
+        folder = exported_folder(source, cache_dir=cache_dir, on_export=on_export)
     return folder

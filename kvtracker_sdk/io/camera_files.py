@@ -89,28 +89,32 @@ def camera_from_mapping(data: Mapping[str, Any], source: str = "camera") -> Came
         raise InputError(f"{source}: {exc}") from exc
 
 
+# what the CLI says to do about a camera file it cannot use (--camera FILE)
+_CAMERA_FILE_HINT = ("--camera takes a JSON or YAML file with fx, fy, cx, cy, width, height "
+                     "(pixels) and optional distortion, or a ROS CameraInfo's fields")
+
+
 def read_camera_file(path: str | os.PathLike[str]) -> Camera:
     """The camera described by a JSON or YAML file (layouts: module docstring)."""
     target = Path(path)
     try:
         text = target.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise SourceError(f"cannot read camera file {target}: {exc}") from exc
+        raise SourceError(f"cannot read camera file {target}: {exc}", hint=_CAMERA_FILE_HINT) from exc
     if target.suffix.lower() in (".yaml", ".yml"):
         try:
             import yaml
         except ImportError as exc:
-            raise MissingDependencyError(
-                "reading a YAML camera file needs PyYAML: pip install 'kvtracker-sdk[yaml]' "
-                "(or write the camera as JSON)"
+            raise MissingDependencyError.for_extra(
+                "yaml", "reading a YAML camera file needs PyYAML (or write the camera as JSON)"
             ) from exc
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as exc:
-            raise SourceError(f"{target} is not valid YAML: {exc}") from exc
+            raise SourceError(f"{target} is not valid YAML: {exc}", hint=_CAMERA_FILE_HINT) from exc
     else:
         try:
             data = json.loads(text)
         except ValueError as exc:
-            raise SourceError(f"{target} is not valid JSON: {exc}") from exc
+            raise SourceError(f"{target} is not valid JSON: {exc}", hint=_CAMERA_FILE_HINT) from exc
     return camera_from_mapping(data, str(target))

@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.errors import ConfigError, ImageShapeError, SourceError
+from kvtracker_sdk.errors import ConfigError, ImageShapeError, SourceError, SourceOpenError
+from kvtracker_sdk.io.opencv_messages import opencv_messages_logged
 from kvtracker_sdk.io.sources import ImageSource, SourceFrame
 
 __all__ = [
@@ -68,6 +69,30 @@ class CaptureSource(ImageSource):
         label = str(target) if isinstance(target, int | str) else type(target).__name__
         self.path = Path(label)  # ImageSource's display name; a URL is kept whole in `target`
         self.label = label
+        self._opened: Any = None  # a capture opened by open(), handed to the first iteration
+
+    def open(self) -> CaptureSource:
+        """Open the camera or stream now (not at the first frame): ``SourceOpenError`` if it
+        cannot be opened, so that nothing is loaded or written for a source that does not exist.
+        OpenCV's own messages go to the log (``opencv_message``), not to the terminal."""
+        if self._opened is None and isinstance(self.target, int | str):
+            self._opened = self._open_capture()
+        return self
+
+    def _open_capture(self) -> Any:
+        camera = isinstance(self.target, int)
+        with opencv_messages_logged(self.label) as messages:
+            capture = _video_capture(self.target)
+            opened = bool(capture.isOpened())
+        if not opened:
+            capture.release()
+            said = f" (OpenCV: {messages[0]})" if messages else ""
+            what = f"camera {self.label}" if camera else self.label
+            reason = ("no such camera, or it is busy or not permitted" if camera else
+                      "the stream is unreachable or in a format OpenCV cannot decode")
+            raise SourceOpenError(f"cannot open {what}: {reason}{said}",
+                                  kind="camera" if camera else "stream", target=self.label)
+        return capture
 
     def __len__(self) -> int:
         return 0  # unknown: a live stream ends when the device or the app stops it
@@ -76,12 +101,14 @@ class CaptureSource(ImageSource):
         import cv2
 
         opened_here = isinstance(self.target, int | str)
-        capture: Any = _video_capture(self.target) if opened_here else self.target
-        if not capture.isOpened():
-            if opened_here:
-                capture.release()
-            raise SourceError(f"cannot open {self.label}: no such camera, or the stream is "
-                              "unreachable / in a format OpenCV cannot decode")
+        capture: Any
+        if opened_here:
+            capture, self._opened = self._opened or self._open_capture(), None
+        else:
+            capture = self.target
+            if not capture.isOpened():
+                raise SourceOpenError(f"cannot open {self.label}: the capture is not opened",
+                                      kind="stream", target=self.label)
         if isinstance(self.target, int):
             capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # recent frames, not a backlog
         try:
@@ -170,8 +197,9 @@ class PacedSource(ImageSource):
 
 
 def open_live_source(spec: str | int) -> CaptureSource:
-    """The capture source of a camera index (``0``) or a stream URL; SourceError otherwise."""
+    """The capture source of a camera index (``0``) or a stream URL, opened: ``SourceOpenError``
+    when it cannot be opened, ``SourceError`` when ``spec`` is neither."""
     if not is_live_spec(spec):
         raise SourceError(f"{spec!r} is neither a camera index nor a stream URL")
     target: int | str = int(spec) if isinstance(spec, int) or str(spec).isdigit() else str(spec)
-    return CaptureSource(target)
+    return CaptureSource(target).open()

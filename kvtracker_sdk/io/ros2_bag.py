@@ -93,8 +93,8 @@ class Ros2BagWriter:
         try:
             from rosbags.rosbag2 import StoragePlugin, Writer
         except ImportError as exc:
-            raise MissingDependencyError(
-                "writing ROS 2 bags needs rosbags: pip install 'kvtracker-sdk[ros]'") from exc
+            raise MissingDependencyError.for_extra(
+                "ros", "writing ROS 2 bags needs rosbags") from exc
         self.path = Path(path)
         if self.path.exists():
             raise ConfigError(f"{self.path} exists: a ROS 2 bag is written into a new folder")

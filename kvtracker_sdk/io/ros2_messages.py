@@ -24,9 +24,7 @@ def typestore() -> Any:
     try:
         from rosbags.typesys import Stores, get_typestore
     except ImportError as exc:
-        raise MissingDependencyError(
-            "writing ROS 2 bags needs rosbags: pip install 'kvtracker-sdk[ros]'"
-        ) from exc
+        raise MissingDependencyError.for_extra("ros", "writing ROS 2 bags needs rosbags") from exc
     return get_typestore(Stores.ROS2_HUMBLE)
 
 

@@ -28,9 +28,16 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kvtracker_sdk.errors import ConfigError, SourceError, TrajectoryError
+from kvtracker_sdk.errors import (
+    ConfigError,
+    FrameDecodeError,
+    SourceError,
+    SourceOpenError,
+    TrajectoryError,
+)
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.io.camera_files import DATASET_CAMERAS
+from kvtracker_sdk.io.opencv_messages import opencv_messages_logged
 from kvtracker_sdk.io.trajectory import Trajectory, read_tum
 
 __all__ = [
@@ -230,7 +237,7 @@ def open_source(path: str | os.PathLike[str], *, fps: float = 30.0) -> ImageSour
             raise SourceError(f"{target} is a single image; pass the folder that holds the frames")
         return VideoSource(target)
     if not target.is_dir():
-        raise SourceError(f"{target} does not exist")
+        raise SourceOpenError(f"{target} does not exist", kind="path", target=str(target))
     if (target / "rgb.txt").is_file():
         return TumSource(target)
     if any(target.glob("frame-*.color.png")):
@@ -248,7 +255,7 @@ def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
     cv2 = _cv2()
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
-        raise SourceError(f"{path}: cannot decode the image")
+        raise FrameDecodeError(f"{path}: cannot decode the image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
@@ -273,11 +280,14 @@ def _natural_key(path: Path) -> list[int | str]:
 def _open_video(path: Path) -> Any:
     cv2 = _cv2()
     if not path.is_file():
-        raise SourceError(f"{path} does not exist")
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
+        raise SourceOpenError(f"{path} does not exist", kind="path", target=str(path))
+    with opencv_messages_logged(str(path)):
+        capture = cv2.VideoCapture(str(path))
+        opened = capture.isOpened()
+    if not opened:
         capture.release()
-        raise SourceError(f"{path}: OpenCV cannot open this video (unknown format or codec)")
+        raise SourceOpenError(f"{path}: OpenCV cannot open this video (unknown format or codec)",
+                              kind="video", target=str(path))
     return capture
 
 

@@ -78,9 +78,9 @@ def _download(repo_id: str, filename: str) -> Path:
     try:
         import huggingface_hub
     except ImportError as exc:
-        raise MissingDependencyError(
-            f"loading {repo_id!r} from the hub needs huggingface_hub: pip install 'kvtracker-sdk[hub]', "
-            f"or pass the path of a local {filename}"
+        raise MissingDependencyError.for_extra(
+            "hub", f"loading {repo_id!r} from the hub needs huggingface_hub (or pass the path of "
+            f"a local {filename})"
         ) from exc
     hint = (
         f"Download it on a machine with network access and pass the local file or its folder "

@@ -1,6 +1,6 @@
 """Scale out beyond one process: many sequences (``eval-many``) and many camera streams (a tracker
 service), on a local process pool or on Ray. Layer 6, beside ``eval/``: it runs trackers and
-scores them. Ray is an optional extra (``kvtracker-sdk[ray]``), imported only by ``ray_runtime``.
+scores them. Ray is an optional extra (``[ray]``), imported only by ``ray_runtime``.
 """
 
 from kvtracker_sdk.scale.manifest import EvalManifest, SequenceSpec, load_manifest

@@ -26,7 +26,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.errors import ConfigError, install_command
 
 __all__ = ["EvalManifest", "ModelSpec", "SequenceSpec", "SimulatedSpec", "load_manifest"]
 
@@ -154,14 +154,36 @@ def load_manifest(path: str | Path) -> EvalManifest:
     try:
         return EvalManifest.model_validate(_resolve(document, target.parent.resolve()))
     except ValidationError as exc:
-        raise ConfigError(f"manifest {target}: {exc}") from exc
+        raise ConfigError(
+            f"manifest {target} is invalid:\n" + "\n".join(_field_problems(exc)), hint=_HINT
+        ) from exc
+
+
+_HINT = ("see `kvtracker eval-many --help` and the example manifests in examples/manifests/ "
+         "(every sequence needs a name, and a source or a simulated camera)")
+
+
+def _field_problems(error: ValidationError) -> list[str]:
+    """One plain line per invalid field, e.g. ``sequences[0].name: Field required``."""
+    problems = error.errors(include_url=False)
+    lines = []
+    for problem in problems:
+        inner = [p for p in problems if p["loc"][: len(problem["loc"])] == problem["loc"]]
+        if problem["type"] == "too_short" and len(inner) > 1:
+            continue  # "no sequences left" only because a sequence itself is invalid
+        where = ""
+        for part in problem["loc"]:
+            where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
+        message = str(problem["msg"]).removeprefix("Value error, ")
+        lines.append(f"{where or 'manifest'}: {message}")
+    return lines
 
 
 def _load_yaml(target: Path, text: str) -> Any:
     try:
         import yaml  # optional: PyYAML
     except ImportError as exc:
-        raise ConfigError(f"manifest {target}: YAML needs PyYAML (pip install pyyaml)") from exc
+        raise ConfigError(f"manifest {target}: YAML needs PyYAML ({install_command('yaml')})") from exc
     try:
         return yaml.safe_load(text)  # safe_load: never constructs Python objects
     except yaml.YAMLError as exc:

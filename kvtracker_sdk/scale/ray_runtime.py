@@ -30,9 +30,7 @@ def import_ray() -> Any:
     try:
         import ray
     except ImportError as exc:
-        raise MissingDependencyError(
-            "the Ray engine needs Ray: pip install 'kvtracker-sdk[ray]'"
-        ) from exc
+        raise MissingDependencyError.for_extra("ray", "the Ray engine needs Ray") from exc
     return ray
 
 

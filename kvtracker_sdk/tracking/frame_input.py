@@ -64,8 +64,13 @@ __all__ = [
     "check_bbox",
     "check_image",
     "check_mask",
+    "check_time_order",
     "resolve_resolution",
+    "to_rgb",
 ]
+
+# the channel orders push_frame/submit accept: "bgr" is what cv2.imread and VideoCapture give
+COLOR_ORDERS = ("rgb", "bgr")
 
 
 @dataclass(frozen=True)
@@ -102,6 +107,26 @@ def check_image(image: Any, *, min_side: int) -> np.ndarray:
     if low < 0.0 or high > 1.0:
         raise ImageDtypeError(f"float image values must lie in [0, 1], got [{low:g}, {high:g}]")
     return image
+
+
+def to_rgb(image: Any, color: Any) -> Any:
+    """``image`` in RGB order: a ``color="bgr"`` HxWx3 array (OpenCV's order) is flipped into a
+    new contiguous array; anything else is returned as is for ``check_image`` to judge."""
+    if color not in COLOR_ORDERS:
+        raise InputError(f'color must be "rgb" or "bgr", got {str(color)[:40]!r}')
+    if color == "bgr" and isinstance(image, np.ndarray) and image.ndim == 3 and image.shape[2] == 3:
+        return np.ascontiguousarray(image[..., ::-1])
+    return image
+
+
+def check_time_order(timestamp: float | None, previous: float | None) -> None:
+    """Timestamps of a session never go backwards (TUM/evo association and the trajectory
+    files assume time order): InputError naming both. Equal stamps and None are accepted."""
+    if timestamp is not None and previous is not None and timestamp < previous:
+        raise InputError(
+            f"timestamp {timestamp!r} is earlier than the previous frame's {previous!r}: "
+            "timestamps must not go backwards within a session (reset() starts a new one)"
+        )
 
 
 def check_mask(mask: Any, size: tuple[int, int]) -> np.ndarray:

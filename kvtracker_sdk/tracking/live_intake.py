@@ -93,6 +93,7 @@ class _Pending:
     bbox: Any
     camera: Camera | None
     captured_at: float
+    color: str = "rgb"
 
 
 class LiveIntake:
@@ -126,6 +127,7 @@ class LiveIntake:
         bbox: Any = None,
         camera: Camera | None = None,
         captured_at: float | None = None,
+        color: str = "rgb",
     ) -> None:
         """Hand ``image`` over and return at once (a frame still waiting is dropped).
 
@@ -139,7 +141,7 @@ class LiveIntake:
             image = image.copy()  # the camera may reuse its buffer
         item = _Pending(
             image, time.time() if timestamp is None else timestamp, mask, bbox, camera,
-            now if captured_at is None else captured_at,
+            now if captured_at is None else captured_at, color,
         )
         if self._closing:
             raise StateError("the live intake is closed")
@@ -237,7 +239,7 @@ class LiveIntake:
         try:
             result = self._tracker.push_frame(
                 item.image, timestamp=item.timestamp, mask=item.mask, bbox=item.bbox,
-                camera=item.camera,
+                camera=item.camera, color=item.color,
             )
         except KVTrackerError as exc:
             return None, exc

@@ -1,4 +1,4 @@
-"""The state machine drawn from its table: the mermaid diagram in ``README.md`` and
+"""The state machine drawn from its table: the mermaid diagram in ``docs/states.md`` and
 ``docs/architecture.md`` is this function's output (``tests/test_state_diagrams.py`` fails when a
 drawing and the table in ``states.py`` drift apart).
 

@@ -4,7 +4,7 @@ Like ``h11/_state.py``: no I/O, no tracker knowledge, every legal move listed on
 facade is the only caller; anything not in the table is a bug and raises
 :class:`~kvtracker_sdk.errors.IllegalTransitionError`.
 
-The diagrams in ``README.md`` and ``docs/architecture.md`` are drawn from this table by
+The diagrams in ``docs/states.md`` and ``docs/architecture.md`` are drawn from this table by
 ``state_diagram.mermaid_state_diagram`` (a test compares them).
 """
 

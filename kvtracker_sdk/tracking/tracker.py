@@ -44,7 +44,7 @@ from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import persistence
 from kvtracker_sdk.tracking.events import EventBus, EventSource
-from kvtracker_sdk.tracking.frame_input import FramePreparer
+from kvtracker_sdk.tracking.frame_input import FramePreparer, check_time_order, to_rgb
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
@@ -106,6 +106,7 @@ class Tracker(EventSource):
         self._lock = threading.RLock()
         self._input_size: tuple[int, int] | None = None  # of the session's frames
         self._frames = 0  # frame indices are never reused by one tracker
+        self._last_timestamp: float | None = None  # of the session's last frame: time order
         self._closed = False
         self._camera = _checked_camera(camera)
         crops = cfg.mode is TrackingMode.OBJECT and (
@@ -247,6 +248,7 @@ class Tracker(EventSource):
         with self._call():
             self._loop.drop_map(_R.RESET)
             self._input_size = None
+            self._last_timestamp = None
             self._regions.reset()
             self._searched = 0
             if self.state is not _S.INIT:
@@ -261,6 +263,7 @@ class Tracker(EventSource):
                     f"map cache layout {kf_map.cache.layout} != backend {self.backend.info.layout}"
                 )
             self._input_size = None
+            self._last_timestamp = None
             self._regions.reset()
             self._searched = 0
             self._loop.install_loaded(kf_map, rebuild=rebuild)
@@ -344,8 +347,11 @@ class Tracker(EventSource):
     def submit(
         self, image: np.ndarray, timestamp: float | None = None, *, mask: np.ndarray | None = None,
         bbox: Any = None, camera: Camera | None = None, captured_at: float | None = None,
+        color: str = "rgb",
     ) -> None:
         """Hand a frame to the live worker and return at once (``tracking/live_intake.py``).
+
+        The frame as in ``push_frame`` (HxWx3 uint8 RGB; ``color="bgr"`` for OpenCV frames).
 
         The worker always tracks the newest frame; one still waiting when a newer arrives is
         dropped and counted. Results: ``on_result`` callbacks and ``latest()``; counters and
@@ -354,7 +360,7 @@ class Tracker(EventSource):
         rebuilds do not pause tracking.
         """
         self._live().submit(image, timestamp, mask=mask, bbox=bbox, camera=camera,
-                            captured_at=captured_at)
+                            captured_at=captured_at, color=color)
 
     def on_result(self, callback: ResultCallback) -> None:
         """``callback(FrameResult)`` after each frame the live worker processed (worker thread)."""
@@ -394,9 +400,15 @@ class Tracker(EventSource):
     # ------------------------------------------------------------------ the frame loop
     def push_frame(
         self, image: np.ndarray, timestamp: float | None = None, mask: np.ndarray | None = None,
-        bbox: Any = None, camera: Camera | None = None,
+        bbox: Any = None, camera: Camera | None = None, *, color: str = "rgb",
     ) -> FrameResult:
-        """Track one RGB frame [H, W, 3] (uint8, or float in [0, 1]).
+        """Track one frame: an HxWx3 array, uint8 (or float in [0, 1]), RGB channel order.
+
+        ``color="bgr"`` takes OpenCV's order (``cv2.imread``, ``cv2.VideoCapture.read``) and
+        converts it; a BGR frame passed as RGB is not detected, it tracks worse. ``timestamp``:
+        seconds on any clock the app chooses (reported unchanged in the result and trajectory
+        files); within a session stamps must not go backwards (``InputError``; ``reset()`` and a
+        loaded map start a new session).
 
         ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object in object mode:
         required with the first frame, optional afterwards (a frame without one is tracked with
@@ -417,6 +429,7 @@ class Tracker(EventSource):
         with self._call():
             kf_map = self._keeper.map
             index = self._frames
+            image = to_rgb(image, color)  # before the segmenter sees it
             given = mask is not None or bbox is not None
             segmented, searching = None, False
             if self._object_mode and not given:
@@ -433,6 +446,7 @@ class Tracker(EventSource):
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
                 camera=_checked_camera(camera) if camera is not None else self._camera,
             )
+            check_time_order(frame.timestamp, self._last_timestamp)
             timings = {"preprocess": _ms(start) - prompt_ms}
             if segmented is not None:
                 timings["segment"] = prompt_ms
@@ -443,7 +457,7 @@ class Tracker(EventSource):
             )
             if intrinsics is not None and source is not None:
                 self._last_intrinsics = (intrinsics, source)
-            region, T_cam_object = None, None
+            region, T_cam_object, object_frame = None, None, None
             if self._object_mode:
                 region_start = time.perf_counter()
                 supplied = self._regions.supplied(frame.input_size, index, mask if given else None,
@@ -452,17 +466,21 @@ class Tracker(EventSource):
                 region, T_cam_object = self._regions.observe(
                     index, self._keeper.map, T_world_cam=pose, camera=intrinsics,
                     supplied=supplied)
+                if T_cam_object is not None:  # the object frame it refers to
+                    object_frame = self._regions.object_frame(self._keeper.map)
                 timings["region"] = _ms(region_start) + (0.0 if segmented is not None
                                                           else prompt_ms)
                 self._count_search(searching and not step.valid, index)
             # counted once the frame went through: an unexpected error leaves both as they were
             self._frames, self._input_size = index + 1, frame.input_size
+            if frame.timestamp is not None:
+                self._last_timestamp = frame.timestamp
             timings["total"] = _ms(start)
             result = FrameResult(
                 index, frame.timestamp, self.state, self.reason, step.pose, step.valid,
                 step.confidence, step.keyframe_id, self._loop.snapshot.map_generation, timings,
                 {"rebuilding": self._keeper.rebuilding}, step.error, intrinsics, source,
-                region, T_cam_object,
+                region, T_cam_object, object_frame,
             )
         _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
                    confidence=step.confidence,

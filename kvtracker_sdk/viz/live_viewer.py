@@ -58,8 +58,7 @@ def _viser() -> Any:
     try:
         import viser
     except ImportError as exc:
-        raise MissingDependencyError(
-            "the live view needs viser: pip install 'kvtracker-sdk[view]'") from exc
+        raise MissingDependencyError.for_extra("view", "the live view needs viser") from exc
     return viser
 
 

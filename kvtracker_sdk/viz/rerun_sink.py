@@ -52,9 +52,7 @@ def _rerun() -> ModuleType:
     try:
         import rerun
     except ImportError as exc:
-        raise MissingDependencyError(
-            "recording to rerun needs rerun-sdk: pip install 'kvtracker-sdk[viz]'"
-        ) from exc
+        raise MissingDependencyError.for_extra("viz", "recording to rerun needs rerun-sdk") from exc
     return rerun
 
 

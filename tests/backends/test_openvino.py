@@ -259,7 +259,7 @@ def test_without_openvino_the_error_names_the_extra(
     pi3_folder: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setitem(sys.modules, "openvino", None)  # import openvino raises ImportError
-    with pytest.raises(MissingDependencyError, match=r"kvtracker-sdk\[openvino\]"):
+    with pytest.raises(MissingDependencyError, match=r"pip install -e \"\.\[openvino\]\""):
         OpenVinoBackend(pi3_folder)
 
 

@@ -1,4 +1,4 @@
-"""The object keyframe rules' table (issue 15's orbit table): the numbers the README shows."""
+"""The object keyframe rules' table (issue 15's orbit table): the numbers the benchmarks README and the object guide show."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from tests.helpers import PROJECT_ROOT
 
 def test_the_view_direction_rule_covers_rings_poles_and_revisits(tmp_path: Path) -> None:
     measured = main(["--out", str(tmp_path / "r.json")])
-    for document in ("README.md", "docs/object_tracking.md"):  # the tables shown are these
+    for document in ("benchmarks/README.md", "docs/object_tracking.md"):  # the tables shown are these
         assert table(measured, 10.0) in (PROJECT_ROOT / document).read_text()
     rows = {(r.path.split(" (")[0], r.rule): r for r in measured}
     view, paper = "view_direction", "azimuth_elevation"

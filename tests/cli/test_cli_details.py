@@ -8,6 +8,7 @@ import contextlib
 import json
 import os
 import threading
+import types
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -24,15 +25,23 @@ TRACK = ("--resolution", "224", "--keyframe-interval", "5")
 DEMO = ("demo", "--frames", "12", "--size", "60x80", "--resolution", "224")
 
 
+def _loaded_stand_in(weights: Any) -> types.SimpleNamespace:
+    """What ``load_model`` returns, without building the model (the export is cut short)."""
+    return types.SimpleNamespace(family="pi3", fingerprint="f" * 16, model=None, name="pi3",
+                                 path=Path(weights))
+
+
 def test_exporting_weights_for_onnx_is_announced_before_it_starts(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, golden_weights: Path, simulated_frames: Path
 ) -> None:
     dev_dependency("onnxruntime")
+    monkeypatch.setenv("KVTRACKER_CACHE_DIR", str(tmp_path / "cache"))  # no cached export
+    monkeypatch.setattr("kvtracker_sdk.export_onnx.reuse.load_model", _loaded_stand_in)
 
-    def exported_folder(*_: Any, **__: Any) -> Path:  # the minutes-long export, cut short
+    def export_model(*_: Any, **__: Any) -> None:  # the minutes-long export, cut short
         raise BackendError("export stopped by the test")
 
-    monkeypatch.setattr("kvtracker_sdk.export_onnx.reuse.exported_folder", exported_folder)
+    monkeypatch.setattr("kvtracker_sdk.export_onnx.reuse.export_model", export_model)
     result = invoke("track", simulated_frames, "--backend", "onnx", "--weights", golden_weights,
                     "--out", tmp_path / "out")
     assert result.exit_code == ExitCode.BACKEND, result.output
@@ -40,6 +49,30 @@ def test_exporting_weights_for_onnx_is_announced_before_it_starts(
     exporting = next(i for i, line in enumerate(lines) if line.startswith("exporting"))
     assert str(golden_weights) in lines[exporting] and "ONNX" in lines[exporting]
     assert exporting < next(i for i, line in enumerate(lines) if line.startswith("error:"))
+    assert not (tmp_path / "out").exists()  # an early failure leaves no empty --out
+
+
+def test_a_cached_export_is_reused_without_the_export_notice(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, golden_weights: Path, simulated_frames: Path
+) -> None:
+    dev_dependency("onnxruntime")
+    from kvtracker_sdk.export_onnx import reuse
+
+    monkeypatch.setattr(reuse, "load_model", _loaded_stand_in)
+    cached = types.SimpleNamespace(weights_fingerprint="f" * 16, sha256={})
+    monkeypatch.setattr(reuse, "read_manifest", lambda folder: cached)  # a valid cached export
+    monkeypatch.setattr(reuse, "verify_files", lambda folder, sha256: None)
+    monkeypatch.setattr(reuse, "export_model", lambda *_, **__: pytest.fail("exported again"))
+
+    def served(*_: Any, **__: Any) -> None:  # the runtime over the cached export, cut short
+        raise BackendError("serving stopped by the test")
+
+    monkeypatch.setattr(reuse, "OnnxBackend", served)
+    result = invoke("track", simulated_frames, "--backend", "onnx", "--weights", golden_weights,
+                    "--out", tmp_path / "out")
+    assert result.exit_code == ExitCode.BACKEND, result.output
+    assert "serving stopped by the test" in result.stderr
+    assert not any(line.startswith("exporting") for line in result.stderr.splitlines())
 
 
 def test_a_box_in_scene_mode_is_refused(tmp_path: Path, simulated_frames: Path,

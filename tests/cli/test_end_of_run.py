@@ -59,7 +59,7 @@ def test_demo_without_the_viz_extra_writes_every_non_plot_output(tmp_path: Path)
     names = {p.name for p in tmp_path.iterdir()}
     assert names >= NON_PLOT_OUTPUTS and "trajectory.png" not in names
     run = json.loads((tmp_path / "run.json").read_text())
-    assert "kvtracker-sdk[viz]" in run["skipped_outputs"]["trajectory.png"]
+    assert 'pip install -e ".[viz]"' in run["skipped_outputs"]["trajectory.png"]
     assert "trajectory.png not written" in result.stdout  # the summary says what is missing
     assert "trajectory.png not written" in result.stderr  # and a warning is logged
 
@@ -95,7 +95,7 @@ def test_a_bad_frame_stops_the_run_and_keeps_what_was_tracked(
     assert "016.png: cannot decode" in result.stderr
     run = json.loads((out / "run.json").read_text())
     assert run["frames"] == 16 and run["valid_poses"] == 16
-    assert run["stopped_by"].startswith("SourceError") and run["bad_frames"]["count"] == 1
+    assert run["stopped_by"].startswith("FrameDecodeError") and run["bad_frames"]["count"] == 1
     assert len(read_tum(out / "trajectory.txt")) == 16
     assert read_map_info(saved).num_keyframes == run["map"]["keyframes"] >= 2
 

@@ -34,6 +34,7 @@ def test_every_exit_code_is_documented_in_help() -> None:
         (errors.MissingDependencyError("x"), ExitCode.DEPENDENCY),  # before BackendError
         (errors.EvaluationError("x"), ExitCode.EVALUATION),  # before InputError
         (errors.SourceError("x"), ExitCode.INPUT),
+        (errors.SourceOpenError("x"), ExitCode.SOURCE),  # before SourceError
         (errors.MaskError("x"), ExitCode.INPUT),
         (errors.MapIOError("x"), ExitCode.MAP),  # before OSError
         (errors.MapModelMismatchError("x"), ExitCode.MAP),
@@ -59,14 +60,14 @@ def test_missing_weights_offline_says_how_to_pass_a_local_file(tmp_path: Path) -
 
 def test_verbose_errors_show_the_traceback(tmp_path: Path) -> None:
     result = invoke("-v", "track", tmp_path / "nowhere", "--out", tmp_path)
-    assert result.exit_code == ExitCode.INPUT
-    assert "Traceback" in result.stderr and "SourceError" in result.stderr
+    assert result.exit_code == ExitCode.SOURCE
+    assert "Traceback" in result.stderr and "SourceOpenError" in result.stderr
 
 
 @pytest.mark.parametrize(
     ("args", "code", "needle"),
     [
-        (["track", "{tmp}/nowhere"], ExitCode.INPUT, "does not exist"),
+        (["track", "{tmp}/nowhere"], ExitCode.SOURCE, "does not exist"),
         (["track", "{tum}", "--resolution", "100"], ExitCode.CONFIG, "resolution"),
         (["track", "{tum}", "--bbox", "1,2,3"], ExitCode.INPUT, "four numbers"),
         (["track", "{tum}", "--masks", "{tmp}/nowhere", "--mode", "object"], ExitCode.INPUT,

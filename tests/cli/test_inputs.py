@@ -99,8 +99,8 @@ def test_box_parsing_and_bad_options(tmp_path: Path) -> None:
     assert parse_bbox(" 10, 20,30 40 ") == (10.0, 20.0, 30.0, 40.0)
     with pytest.raises(ConfigError):
         FrameSelection(stride=0)
-    with pytest.raises(SourceError):
+    with pytest.raises(MaskError):
         MaskFolder(tmp_path / "missing")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(SourceError, match="no images"):
+    with pytest.raises(MaskError, match="no images"):
         MaskFolder(tmp_path / "empty")

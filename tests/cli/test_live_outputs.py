@@ -39,7 +39,7 @@ def test_without_viser_the_run_goes_on_without_the_view(
     monkeypatch.setitem(sys.modules, "viser", None)  # import viser -> ImportError
     result = invoke(*DEMO, "--out", tmp_path, "--view", "--view-port", "0")
     assert result.exit_code == 0, result.output
-    assert "kvtracker-sdk[view]" in result.stderr
+    assert 'pip install -e ".[view]"' in result.stderr
     assert (tmp_path / "run.json").is_file()
 
 
@@ -50,7 +50,7 @@ def test_without_rosbags_the_other_outputs_are_written_and_the_exit_code_says_so
         monkeypatch.setitem(sys.modules, module, None)
     result = invoke(*DEMO, "--out", tmp_path / "run", "--ros2-bag", tmp_path / "bag")
     assert result.exit_code == 5, result.output
-    assert "kvtracker-sdk[ros]" in result.stderr
+    assert 'pip install -e ".[ros]"' in result.stderr
     assert {"trajectory.txt", "points.ply", "run.json"} <= {p.name for p in (tmp_path / "run").iterdir()}
     assert not (tmp_path / "bag").exists()
 

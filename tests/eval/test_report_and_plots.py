@@ -95,7 +95,7 @@ def test_plot_errors(
     with pytest.raises(TrajectoryError, match="3 errors for 300"):
         plot_trajectory(tmp_path / "x.png", estimate, translation_errors=np.zeros(3))
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)  # as if matplotlib were absent
-    with pytest.raises(MissingDependencyError, match=r"kvtracker-sdk\[viz\]"):
+    with pytest.raises(MissingDependencyError, match=r"pip install -e \"\.\[viz\]\""):
         plot_trajectory(tmp_path / "x.png", estimate)
     assert list(tmp_path.iterdir()) == []
 

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.errors import ImageShapeError, SourceError
+from kvtracker_sdk.errors import ImageShapeError, SourceOpenError
 from kvtracker_sdk.io import live_sources
 from kvtracker_sdk.io.live_sources import (
     CaptureSource,
@@ -50,11 +50,13 @@ def test_urls_and_app_captures(monkeypatch: pytest.MonkeyPatch) -> None:
     targets: list[object] = []
     monkeypatch.setattr(live_sources, "_video_capture",
                         lambda t: targets.append(t) or FakeCapture([], opened=False))
-    stream = open_source("rtsp://10.0.0.2:8554/cam")
-    assert isinstance(stream, CaptureSource) and "rtsp://10.0.0.2:8554/cam" in repr(stream)
-    with pytest.raises(SourceError, match="cannot open rtsp://10.0.0.2:8554/cam"):
+    with pytest.raises(SourceOpenError, match="cannot open rtsp://10.0.0.2:8554/cam") as caught:
+        open_source("rtsp://10.0.0.2:8554/cam")  # opened at once, not at the first frame
+    assert caught.value.kind == "stream" and targets == ["rtsp://10.0.0.2:8554/cam"]
+    stream = CaptureSource("rtsp://10.0.0.2:8554/cam")  # not opened until used
+    assert "rtsp://10.0.0.2:8554/cam" in repr(stream)
+    with pytest.raises(SourceOpenError):
         list(stream)
-    assert targets == ["rtsp://10.0.0.2:8554/cam"]
     own = FakeCapture(_bgr_frames(2))  # a capture the app opened: read, never released
     assert len(list(CaptureSource(own))) == 2 and not own.released
 

@@ -130,7 +130,8 @@ def test_the_producer_never_takes_the_trackers_lock(gated: GatedBackend) -> None
     to completion on this thread with the worker blocked."""
     frames = list(gated.inner.frames(SIZE, stop=40))
     with Tracker(TrackerConfig(), gated) as tracker:
-        tracker.submit(frames[0].image)
+        # one clock for the whole session: stamps that go backwards are refused
+        tracker.submit(frames[0].image, timestamp=frames[0].timestamp)
         assert gated.entered.get(timeout=WAIT) == 0
         for frame in frames[1:]:
             tracker.submit(frame.image, timestamp=frame.timestamp)  # would deadlock if it waited

@@ -82,6 +82,6 @@ def test_focal_length_is_recovered_from_local_points() -> None:
 
 def test_missing_rerun_names_the_extra(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun` now raises ImportError
-    with pytest.raises(MissingDependencyError, match=r"kvtracker-sdk\[viz\]"):
+    with pytest.raises(MissingDependencyError, match=r"pip install -e \"\.\[viz\]\""):
         RerunSink(tmp_path / "run.rrd")
     assert list(tmp_path.iterdir()) == []
