@@ -281,7 +281,7 @@ class FrameLoop:
         self.drop_map(_R.MAP_LOADED)
         change, self._world_change = self._world_change, None
         self.keeper.load(kf_map, rebuild=rebuild)
-        self.aligner.reset()
+        self.aligner.loaded(kf_map)
         # the backend may have been swapped for another runtime since the map was read
         self.keeper.convert_cache(self.backend.info.dtype, self.backend.info.device)
         self.monitor.set_reference(kf_map.keyframes[0].mean_confidence)

@@ -64,6 +64,7 @@ RELEVEL_DEG = 0.05  # re-level only for a change an app could notice over a room
 # A single reading's own error cannot be measured from itself: a MEMS accelerometer at rest with
 # a tracked pose is good to about half a degree, which an estimate of one sample reports.
 _SINGLE_SAMPLE_DEG = 0.5
+_MIN_SPREAD_SAMPLES = 10
 _HEIGHT_TRIM = 0.001  # object height: the extent between these quantiles (stray points cut)
 
 
@@ -174,12 +175,16 @@ class GravityEstimator:
         return -self.total / np.linalg.norm(self.total)
 
     def uncertainty_deg(self) -> float:
-        """RMS angular error of the mean direction: per-sample dispersion 2 (1 - R) (R the mean
-        resultant length; small-angle spherical statistics) over the count."""
-        if self.count < 2:
-            return _SINGLE_SAMPLE_DEG
-        resultant = float(np.linalg.norm(self.total)) / self.count
-        return math.degrees(math.sqrt(max(2.0 * (1.0 - resultant), 0.0) / self.count))
+        """RMS angular error of the mean direction: the per-sample mean square angle 2 (1 - R)
+        (R the mean resultant length; small-angle spherical statistics) over the count. A few
+        samples cannot measure their own spread: below ``_MIN_SPREAD_SAMPLES`` the per-sample
+        error is taken as at least ``_SINGLE_SAMPLE_DEG``."""
+        n = self.count
+        resultant = float(np.linalg.norm(self.total)) / n
+        spread = math.degrees(math.sqrt(max(2.0 * (1.0 - resultant), 0.0) * n / max(n - 1, 1)))
+        if n < _MIN_SPREAD_SAMPLES:
+            spread = max(spread, _SINGLE_SAMPLE_DEG)
+        return spread / math.sqrt(n)
 
     def estimate(self, aligned: bool) -> GravityEstimate | None:
         if self.count == 0:
@@ -204,6 +209,15 @@ class WorldAligner:
         self.gravity.reset()
         self._estimates.clear()
         self._object_height = None
+
+    def loaded(self, kf_map: KeyframeMap) -> None:
+        """A saved map was installed: a new session of its world. Its recorded scale is reported
+        (``frame_index`` None, no samples) until a source measures again."""
+        self.reset()
+        world = kf_map.world
+        if world.metric:
+            self._estimates[world.scale_source] = ScaleEstimate(
+                world.scale_source, 1.0, world.scale_uncertainty or 0.0, 0, applied=True)
 
     def estimates(self) -> tuple[ScaleEstimate, ...]:
         return tuple(self._estimates[s] for s in ScaleSource if s in self._estimates)
@@ -230,15 +244,17 @@ class WorldAligner:
         g.count_at_check = g.count
         up = g.up
         tilt = math.degrees(math.acos(float(np.clip(up[2], -1.0, 1.0))))
-        if aligned and tilt <= RELEVEL_DEG:
-            return None
+        uncertainty = g.uncertainty_deg()
+        levelled_to = kf_map.world.gravity_uncertainty_deg
+        if aligned and (tilt <= RELEVEL_DEG or (
+                levelled_to is not None and uncertainty >= levelled_to)):
+            return None  # a change nobody would notice, or no better than the world's levelling
         eye = np.eye(3)
         # yaw stays keyframe 0's: its viewing direction (camera z, the unlevelled world's z) or,
         # once levelled, the world's x axis (that direction made horizontal)
         heading, fallback = (eye[0], eye[1]) if aligned else (eye[2], -eye[1])
         rotation = level_rotation(up, heading, fallback)
-        world = replace(kf_map.world, gravity_aligned=True,
-                        gravity_uncertainty_deg=g.uncertainty_deg())
+        world = replace(kf_map.world, gravity_aligned=True, gravity_uncertainty_deg=uncertainty)
         return WorldChange(Sim3(rotation, np.zeros(3), 1.0), WorldAlignment.GRAVITY, world)
 
     # ------------------------------------------------------------------ scale
