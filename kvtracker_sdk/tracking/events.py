@@ -118,7 +118,8 @@ class KeyframeRejectedEvent:
 
 @dataclass(frozen=True)
 class MapUpdatedEvent:
-    """A new map was installed (bootstrap, accepted rebuild, loaded map, new map).
+    """A new map was installed (bootstrap, accepted rebuild, loaded map, new map), or the map was
+    re-expressed in a metric or levelled world (cause "world": see ``WorldFrameChangedEvent``).
 
     ``gauge`` maps the new mapping pass's raw frame to the world frame. ``corrections`` holds, per
     keyframe id kept from the previous map, the rigid world-frame correction ``C`` with
@@ -127,7 +128,7 @@ class MapUpdatedEvent:
     """
 
     generation: int
-    cause: str  # "bootstrap", "keyframe", "new_map", "loaded"
+    cause: str  # "bootstrap", "keyframe", "new_map", "loaded", "world"
     keyframe_ids: tuple[int, ...]
     evicted_ids: tuple[int, ...]
     gauge: Sim3

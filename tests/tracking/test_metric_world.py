@@ -305,3 +305,35 @@ def test_up_error_measures_a_tilted_world() -> None:
     windows, median = up_errors_deg(estimated, truth)
     assert np.allclose(windows, np.degrees(0.01)) and median == pytest.approx(np.degrees(0.01))
     assert ate(estimated, estimated, with_scale=False) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_rebuild_in_flight_lands_in_the_levelled_world() -> None:
+    from kvtracker_sdk.backends.simulated_sensors import gravity_reading
+    from tests.tracking.gated_backend import GATE_TIMEOUT_S, GatedBackend
+
+    backend = GatedBackend(orbit(40), seed=1)
+    frames = list(backend.frames(SIZE, stop=13, textured=False))
+    config = {"threading": {"async_mapping": True}, "keyframing": {"interval_frames": 10}}
+    quiet = np.random.default_rng(0)
+    with make_tracker(backend, **config) as tracker:
+        tracker.push_frame(frames[0].image)
+        assert tracker.wait_for_map(GATE_TIMEOUT_S)
+        backend.hold(2)  # the rebuild adding frame 10
+        for frame in frames[1:11]:
+            tracker.push_frame(frame.image)
+        assert backend.started(2) and tracker.map_status.rebuilding
+        # levelled while that rebuild (started in the camera-0 world) is running
+        tracker.push_frame(frames[11].image,
+                           gravity=gravity_reading(frames[11].T_world_cam, rng=quiet, noise=0.0))
+        levelled = tracker.keyframe_map
+        assert levelled is not None and levelled.world.gravity_aligned
+        backend.release(2)
+        assert tracker.wait_for_map(GATE_TIMEOUT_S)
+        tracker.push_frame(frames[12].image)
+        rebuilt = tracker.keyframe_map
+    assert rebuilt is not None and rebuilt.num_keyframes == 2
+    assert rebuilt.generation > levelled.generation and rebuilt.world.gravity_aligned
+    for keyframe in rebuilt.keyframes:  # both keyframes see the true up as the world's z
+        true_up_in_camera = frames[keyframe.frame_index].T_world_cam[:3, :3].T @ [0, 0, 1]
+        up = keyframe.T_world_cam[:3, :3] @ true_up_in_camera
+        assert np.degrees(np.arccos(np.clip(up[2], -1, 1))) < 1.0  # pose noise 0.3 deg per axis
