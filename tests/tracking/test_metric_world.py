@@ -131,6 +131,7 @@ def test_depth_makes_the_world_metric_through_rebuilds_and_a_reload(
     # metres without any alignment scale: the same ATE as the scale-fitted mono run (5 %)
     assert row["ate_m_se3"] == pytest.approx(mono["ate_m_sim3"], rel=0.05)
     assert row["world"]["scale_source"] == "depth"
+    assert WorldAlignment.METRIC_SCALE.value not in row["world_events"]  # metric from birth
     depth_estimate = row["scale_estimates"][0]
     assert depth_estimate["source"] == "depth"
     assert depth_estimate["metres_per_unit"] == pytest.approx(1.0, abs=1e-9)  # anchored
@@ -337,3 +338,26 @@ def test_a_rebuild_in_flight_lands_in_the_levelled_world() -> None:
         true_up_in_camera = frames[keyframe.frame_index].T_world_cam[:3, :3].T @ [0, 0, 1]
         up = keyframe.T_world_cam[:3, :3] @ true_up_in_camera
         assert np.degrees(np.arccos(np.clip(up[2], -1, 1))) < 1.0  # pose noise 0.3 deg per axis
+
+
+def test_rebuilds_of_a_depth_map_take_their_scale_from_the_sensor_not_the_last_map() -> None:
+    from dataclasses import replace
+
+    from kvtracker_sdk.backends.simulated_sensors import sensor_depth
+
+    backend = SimulatedBackend(orbit(40), seed=1)
+    config = {"keyframing": {"interval_frames": 10}}
+    rng = np.random.default_rng(0)
+    with make_tracker(backend, **config) as tracker:
+        for frame in backend.frames(SIZE, stop=12, textured=False):
+            depth = sensor_depth(backend.scene, frame.T_world_cam, SIZE, rng=rng)
+            tracker.push_frame(frame.image, depth=depth if frame.index in (0, 10) else None)
+            if frame.index == 0:  # a map whose depths drifted 10 % (what rebuilds would inherit)
+                kf_map = tracker.keyframe_map
+                assert kf_map is not None
+                drifted = tuple(replace(kf, local_points=kf.local_points * np.float32(1.1))
+                                for kf in kf_map.keyframes)
+                tracker._keeper.map = replace(kf_map, keyframes=drifted)
+        rebuilt = tracker.keyframe_map
+    assert rebuilt is not None and rebuilt.num_keyframes == 2
+    assert abs(world_units_per_metre(backend, rebuilt) - 1.0) < 0.01  # not 1.1
