@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
-from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
+from kvtracker_sdk.backends.simulated_scene import GroundTruth, SimulatedScene, orbit
 from kvtracker_sdk.backends.simulated_sensors import gravity_reading, sensor_depth
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
@@ -61,6 +61,36 @@ TUM = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tum_fr2_
 SIZE = (196, 252)  # Pi3's model size at resolution 224 for 4:3 frames: no resize
 UP = np.array([0.0, 0.0, 1.0])  # the simulated world's true up
 WINDOW = 100  # frames per window of the world-up measurement
+
+
+@dataclass(frozen=True)
+class BoxScene(SimulatedScene):
+    """The simulated room with an upright box as the object (``half_extents`` metres along the
+    world axes, centred where the sphere would be): an object with edges, like a mug or a
+    carton, whose visible outline is its true extent (a sphere's is not: its outermost pixels
+    see the surface at a grazing angle, nearer than the rim)."""
+
+    half_extents: tuple[float, float, float] = (0.2, 0.15, 0.25)
+
+    @classmethod
+    def from_scene(cls, scene: SimulatedScene, half_extents: tuple[float, float, float]
+                   ) -> BoxScene:
+        return cls(scene.room_min, scene.room_max, scene.object_centre,
+                   float(max(half_extents)), half_extents)
+
+    def depth(self, T_world_cam: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        room, _ = SimulatedScene(self.room_min, self.room_max, self.room_min - 1.0,
+                                 1e-9).depth(T_world_cam, rays)  # the room alone
+        R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        directions = rays @ R.T
+        low = self.object_centre - np.array(self.half_extents)
+        high = self.object_centre + np.array(self.half_extents)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (low - c) / directions, (high - c) / directions
+        near = np.nanmax(np.minimum(t1, t2), axis=-1)  # slab method
+        far = np.nanmin(np.maximum(t1, t2), axis=-1)
+        on_object = (near <= far) & (near > 0) & (near < room)
+        return np.where(on_object, near, room), on_object
 
 
 def tum_truth() -> GroundTruth:
@@ -257,23 +287,36 @@ def run_mono(truth: GroundTruth, frames: int) -> dict[str, Any]:
             "ate_m_sim3": ate(est, gt, with_scale=True)}
 
 
-def run_object_height(frames: int = 720) -> dict[str, Any]:
-    """Object mode around the 0.6 m sphere, its height stated after frame 0."""
-    backend = SimulatedBackend(orbit(720), seed=2, translation_noise_m=0.003,
-                               rotation_noise_deg=0.1)
-    height = 2.0 * backend.scene.object_radius
+def object_backend(shape: str) -> tuple[SimulatedBackend, float]:
+    """(backend orbiting the object, its true height in metres): ``sphere`` (0.6 m) or ``box``
+    (0.5 m tall)."""
+    truth = orbit(720)
+    noise = {"seed": 2, "translation_noise_m": 0.003, "rotation_noise_deg": 0.1}
+    if shape == "sphere":
+        backend = SimulatedBackend(truth, **noise)  # type: ignore[arg-type]
+        return backend, 2.0 * backend.scene.object_radius
+    box = BoxScene.from_scene(SimulatedScene.around(truth.poses), (0.2, 0.15, 0.25))
+    return SimulatedBackend(truth, scene=box, **noise), 2.0 * box.half_extents[2]  # type: ignore[arg-type]
+
+
+def run_object_height(shape: str, frames: int = 720, *, gravity: bool = True) -> dict[str, Any]:
+    """Object mode around the object, its true height stated after frame 0 (``gravity``: with
+    accelerometer readings, so that "height" is along the true up; without, it is along keyframe
+    0's image up, which a camera looking down at a box tilts into the box's depth)."""
+    backend, height = object_backend(shape)
 
     def state(tracker: Tracker, index: int, _run: Drive) -> None:
         if index == 0:
             tracker.set_object_height(height)
 
     run, tracker = drive(backend, frames=frames, config={"mode": "object"}, with_mask=True,
-                         statement=state)
+                         statement=state, gravity=gravity)
     status = tracker.map_status
     tracker.close()
     errors = scale_errors(run)
     after = [units for frame, _, units in run.scales if frame == 0][-1]  # after the rescale
-    return {"frames": frames, "true_height_m": height, "scale_error_after_statement":
+    return {"shape": shape, "frames": frames, "gravity": gravity, "true_height_m": height,
+            "scale_error_after_statement":
             abs(after - 1.0), "scale_error_end": errors["end"], "scale_error_max": errors["max"],
             "estimate": [{"source": e.source.value, "relative_uncertainty":
                           e.relative_uncertainty} for e in status.scale_estimates]}
@@ -317,7 +360,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         gravity, run, kf_map = run_rgbd(truth, frames, folder / "gravity", gravity=True,
                                         reload_at=frames // 2)
         gravity["ros2_bag"] = ros_map_up_errors_deg(run, kf_map, folder)
-        known = {"object_height": run_object_height(),
+        known = {"object_height_box": run_object_height("box"),
+                 "object_height_sphere": run_object_height("sphere"),
                  "distance": run_known_distance(truth, min(frames, 1200), min(frames, 1200) - 1)}
     report = {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -348,9 +392,11 @@ def table(report: dict[str, Any]) -> str:
             in row else ""
         lines.append(f"| {name} | {100 * s['after_first_map']:.3f} % | {100 * s['end']:.3f} % | "
                      f"{100 * s['max']:.3f} % | {row['ate_m_se3']:.4f} (SE(3)) | {up} |")
-    lines.append(f"| object height (0.6 m sphere) | "
-                 f"{100 * known['object_height']['scale_error_after_statement']:.2f} % | "
-                 f"{100 * known['object_height']['scale_error_end']:.2f} % | | | |")
+    for shape in ("box", "sphere"):
+        row = known[f"object_height_{shape}"]
+        lines.append(f"| object height ({row['true_height_m']:.1f} m {shape}) | "
+                     f"{100 * row['scale_error_after_statement']:.2f} % | "
+                     f"{100 * row['scale_error_end']:.2f} % | | | |")
     lines.append(f"| known distance | "
                  f"{100 * known['distance']['scale_error_after_statement']:.2f} % | "
                  f"{100 * known['distance']['scale_error_end']:.2f} % | | | |")
