@@ -152,52 +152,63 @@ def pixel_angle(keyframe: Keyframe) -> float:
 
 
 class GravityEstimator:
-    """The mean of unit "down" samples in the current world frame (see the module docstring)."""
+    """The mean of unit "down" samples in the current world frame (see the module docstring).
+
+    The sum and the count are one tuple, replaced whole: ``MapStatus`` reads them from other
+    threads without the tracker's lock."""
 
     def __init__(self) -> None:
         self.reset()
 
     def reset(self) -> None:
-        self.total = np.zeros(3)
-        self.count = 0
+        self._sum: tuple[np.ndarray, int] = (np.zeros(3), 0)
         self.count_at_check = 0  # samples at the last levelling decision
 
+    @property
+    def count(self) -> int:
+        return self._sum[1]
+
     def add(self, down_world: np.ndarray) -> None:
-        self.total += down_world / np.linalg.norm(down_world)
-        self.count += 1
+        total, count = self._sum
+        self._sum = (total + down_world / np.linalg.norm(down_world), count + 1)
 
     def rotate(self, rotation: np.ndarray) -> None:
         """The world was rotated (new <- old): keep the samples in the new world's coordinates."""
-        self.total = rotation @ self.total
+        total, count = self._sum
+        self._sum = (rotation @ total, count)
 
     @property
     def up(self) -> np.ndarray:
-        return -self.total / np.linalg.norm(self.total)
+        total = self._sum[0]
+        return -total / np.linalg.norm(total)
 
     def uncertainty_deg(self) -> float:
         """RMS angular error of the mean direction: the per-sample mean square angle 2 (1 - R)
         (R the mean resultant length; small-angle spherical statistics) over the count. A few
         samples cannot measure their own spread: below ``_MIN_SPREAD_SAMPLES`` the per-sample
         error is taken as at least ``_SINGLE_SAMPLE_DEG``."""
-        n = self.count
-        resultant = float(np.linalg.norm(self.total)) / n
+        total, n = self._sum
+        resultant = float(np.linalg.norm(total)) / n
         spread = math.degrees(math.sqrt(max(2.0 * (1.0 - resultant), 0.0) * n / max(n - 1, 1)))
         if n < _MIN_SPREAD_SAMPLES:
             spread = max(spread, _SINGLE_SAMPLE_DEG)
         return spread / math.sqrt(n)
 
     def estimate(self, aligned: bool) -> GravityEstimate | None:
-        if self.count == 0:
+        snapshot = GravityEstimator()
+        snapshot._sum = self._sum  # one consistent (sum, count) pair
+        if snapshot.count == 0:
             return None
-        up = self.up
+        up = snapshot.up
         tilt = math.degrees(math.acos(float(np.clip(up[2], -1.0, 1.0))))
-        return GravityEstimate(up, self.uncertainty_deg(), tilt, self.count, aligned)
+        return GravityEstimate(up, snapshot.uncertainty_deg(), tilt, snapshot.count, aligned)
 
 
 class WorldAligner:
-    """One tracker's scale sources and gravity: decides the world transforms (not thread-safe:
-    the tracker's lock guards it). It never changes a map itself; ``FrameLoop`` applies what it
-    returns through ``MapKeeper.transform_world``."""
+    """One tracker's scale sources and gravity: decides the world transforms. The tracker's lock
+    guards every call but ``estimates`` and ``gravity_estimate`` (``MapStatus``: they read values
+    replaced whole). It never changes a map itself; ``FrameLoop`` applies what it returns
+    through ``MapKeeper.transform_world``."""
 
     def __init__(self) -> None:
         self.gravity = GravityEstimator()
@@ -207,7 +218,7 @@ class WorldAligner:
     def reset(self) -> None:
         """A new world frame (map dropped or loaded): its samples and statements are void."""
         self.gravity.reset()
-        self._estimates.clear()
+        self._estimates = {}
         self._object_height = None
 
     def loaded(self, kf_map: KeyframeMap) -> None:
@@ -216,11 +227,16 @@ class WorldAligner:
         self.reset()
         world = kf_map.world
         if world.metric:
-            self._estimates[world.scale_source] = ScaleEstimate(
-                world.scale_source, 1.0, world.scale_uncertainty or 0.0, 0, applied=True)
+            self._set_estimate(ScaleEstimate(
+                world.scale_source, 1.0, world.scale_uncertainty or 0.0, 0, applied=True))
+
+    def _set_estimate(self, estimate: ScaleEstimate) -> None:
+        # replaced whole, never mutated: MapStatus reads it from other threads without the lock
+        self._estimates = {**self._estimates, estimate.source: estimate}
 
     def estimates(self) -> tuple[ScaleEstimate, ...]:
-        return tuple(self._estimates[s] for s in ScaleSource if s in self._estimates)
+        current = self._estimates
+        return tuple(current[s] for s in ScaleSource if s in current)
 
     def gravity_estimate(self, kf_map: KeyframeMap | None) -> GravityEstimate | None:
         return self.gravity.estimate(kf_map is not None and kf_map.world.gravity_aligned)
@@ -269,9 +285,9 @@ class WorldAligner:
         if fit is not None:
             metres_per_unit = fit.scale / kf_map.gauge.scale
             anchored = kf_map.world.scale_source is ScaleSource.DEPTH
-            self._estimates[ScaleSource.DEPTH] = ScaleEstimate(
+            self._set_estimate(ScaleEstimate(
                 ScaleSource.DEPTH, metres_per_unit, fit.relative_uncertainty, fit.pixels,
-                applied=True, frame_index=frame)
+                applied=True, frame_index=frame))
             if not anchored:
                 world = replace(kf_map.world, scale_source=ScaleSource.DEPTH,
                                 scale_uncertainty=fit.relative_uncertainty)
@@ -282,14 +298,14 @@ class WorldAligner:
 
     def rescaled(self, factor: float) -> None:
         """The world was rescaled by ``factor``: re-express the estimates' metres per unit."""
-        for source, estimate in list(self._estimates.items()):
-            self._estimates[source] = replace(
-                estimate, metres_per_unit=estimate.metres_per_unit / factor)
+        for estimate in list(self._estimates.values()):
+            self._set_estimate(replace(estimate,
+                                       metres_per_unit=estimate.metres_per_unit / factor))
 
     def _mark_known_size_unapplied(self) -> None:
         known = self._estimates.get(ScaleSource.KNOWN_SIZE)
         if known is not None:
-            self._estimates[ScaleSource.KNOWN_SIZE] = replace(known, applied=False)
+            self._set_estimate(replace(known, applied=False))
 
     def state_length(
         self, kf_map: KeyframeMap | None, length_m: float, measured: float,
@@ -304,9 +320,9 @@ class WorldAligner:
         metres_per_unit = length_m / measured
         relative = math.hypot(stated_sigma_m / length_m, measured_sigma / measured)
         by_depth = kf_map.world.scale_source is ScaleSource.DEPTH
-        self._estimates[ScaleSource.KNOWN_SIZE] = ScaleEstimate(
+        self._set_estimate(ScaleEstimate(
             ScaleSource.KNOWN_SIZE, metres_per_unit, relative, 1, applied=not by_depth,
-            frame_index=frame_index)
+            frame_index=frame_index))
         if by_depth:
             return None
         world = replace(kf_map.world, scale_source=ScaleSource.KNOWN_SIZE,
