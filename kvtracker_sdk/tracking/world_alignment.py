@@ -128,16 +128,18 @@ def measured_height(
     min/max would follow, do not count), plus one pixel's footprint at the extreme points'
     distance from ``camera_centre`` (``pixel_angle`` radians per pixel): every point sits at its
     pixel's centre, half a pixel inside the object's outline on each side. Uncertainty: how far
-    the 0.5 % / 99.5 % extent lies from it. A smooth round outline (a ball) still measures short:
-    its outermost pixels see the surface at a grazing angle, nearer than its rim.
+    the 0.5 % / 99.5 % extent lies from it, and at least half a pixel's footprint (the outline is
+    known to a pixel at each end). A smooth round outline (a ball) measures short by more than
+    that: its outermost pixels see the surface at a grazing angle, nearer than its rim.
     """
     heights = points @ axis
     low, high, low5, high5 = np.quantile(heights, [_HEIGHT_TRIM, 1.0 - _HEIGHT_TRIM,
                                                   5 * _HEIGHT_TRIM, 1.0 - 5 * _HEIGHT_TRIM])
     ends = points[(heights <= low) | (heights >= high)]
     distance = float(np.median(np.linalg.norm(ends - camera_centre, axis=1)))
-    extent = float(high - low) + pixel_angle * distance
-    return extent, abs(float(high - low) - float(high5 - low5))
+    footprint = pixel_angle * distance
+    spread = abs(float(high - low) - float(high5 - low5))
+    return float(high - low) + footprint, math.hypot(spread, 0.5 * footprint)
 
 
 def pixel_angle(keyframe: Keyframe) -> float:

@@ -359,3 +359,19 @@ def test_rebuilds_of_a_depth_map_take_their_scale_from_the_sensor_not_the_last_m
         rebuilt = tracker.keyframe_map
     assert rebuilt is not None and rebuilt.num_keyframes == 2
     assert abs(world_units_per_metre(backend, rebuilt) - 1.0) < 0.01  # not 1.1
+
+
+def test_live_frames_carry_their_depth_and_gravity() -> None:
+    from kvtracker_sdk.backends.simulated_sensors import gravity_reading, sensor_depth
+
+    backend = SimulatedBackend(orbit(20), seed=1)
+    rng = np.random.default_rng(0)
+    with make_tracker(backend) as tracker:
+        for frame in backend.frames(SIZE, stop=3, textured=False):
+            tracker.submit(frame.image, frame.timestamp,
+                           depth=sensor_depth(backend.scene, frame.T_world_cam, SIZE, rng=rng),
+                           depth_scale=1.0, gravity=gravity_reading(frame.T_world_cam, rng=rng))
+            assert tracker.wait_idle(60.0)  # one at a time: none dropped
+        world = tracker.map_status.world
+        assert tracker.stats.processed == 3
+    assert world.scale_source is ScaleSource.DEPTH and world.gravity_aligned
