@@ -121,13 +121,14 @@ class FrameLoop:
         kf_map = self.keeper.map
         if kf_map is None:
             return step
-        changes: list[WorldChange | None] = []
         if gravity is not None and step.valid and step.pose is not None:
-            changes.append(self.aligner.after_pose(kf_map, step.pose.T_world_cam, gravity))
-        changes.append(self.aligner.pending_object_height(self.keeper.map, index))
-        for change in changes:
-            if change is not None:
-                step = self._moved_step(step, self.apply_world(change, index))
+            level = self.aligner.after_pose(kf_map, step.pose.T_world_cam, gravity)
+            if level is not None:
+                step = self._moved_step(step, self.apply_world(level, index))
+        # measured in the world as it is now (levelled first: "height" is along up)
+        rescale = self.aligner.pending_object_height(self.keeper.map, index)
+        if rescale is not None:
+            step = self._moved_step(step, self.apply_world(rescale, index))
         return step
 
     @staticmethod

@@ -235,19 +235,23 @@ def test_a_known_distance_makes_the_world_metric(tum: GroundTruth) -> None:
 
 
 def test_object_height_on_frame_zero() -> None:
-    """A 0.5 m box on a 0.3 deg-noisy orbit, with accelerometer readings: "height" is along up."""
+    """A 0.5 m box on a 0.3 deg-noisy orbit, with accelerometer readings ("height" is along up),
+    its height stated with the first frame (before there is a map: applied once there is)."""
+    from kvtracker_sdk.backends.simulated_sensors import gravity_reading
+
     backend, height = object_backend("box")
-
-    def state(tracker, index: int, _run: Drive) -> None:  # type: ignore[no-untyped-def]
-        if index == 0:
-            tracker.set_object_height(height)
-
-    run, tracker = drive(backend, frames=8, config={"mode": "object"}, with_mask=True,
-                         statement=state, gravity=True)
-    with tracker:
+    rng = np.random.default_rng(0)
+    with make_tracker(backend, mode="object") as tracker:
+        events: list = []
+        tracker.on_world_frame_changed(events.append)
+        tracker.set_object_height(height)
+        for frame in backend.frames(SIZE, stop=8, textured=False, with_mask=True):
+            tracker.push_frame(frame.image, mask=frame.mask,
+                               gravity=gravity_reading(frame.T_world_cam, rng=rng))
         status = tracker.map_status
-    assert WorldAlignment.METRIC_SCALE in [e.reason for e in run.world_events]
-    assert abs(run.scales[-1][2] - 1.0) <= 0.02
+        units = world_units_per_metre(backend, tracker.keyframe_map)  # type: ignore[arg-type]
+    assert [e.reason for e in events][:2] == [WorldAlignment.GRAVITY, WorldAlignment.METRIC_SCALE]
+    assert abs(units - 1.0) <= 0.02
     assert status.world.scale_source is ScaleSource.KNOWN_SIZE and status.world.gravity_aligned
     with make_tracker(backend) as scene, pytest.raises(StateError):
         scene.set_object_height(0.5)
