@@ -21,9 +21,10 @@ Scale sources (``ScaleSource``), strongest first:
 
 Gravity: each frame's gravity reading (camera frame, pointing down) rotated by the frame's tracked
 pose is one sample of "down" in the world; the mean of the unit samples estimates it. The world is
-levelled as soon as a map and one sample exist, then again each time the sample count has doubled
-and the estimate moved by more than ``RELEVEL_DEG`` (a handful of events over a long run, each one
-averaging more readings). Levelling keeps the heading: the new x axis is keyframe 0's viewing
+levelled as soon as a map and one sample exist, then again each time the sample count has doubled,
+the estimate moved by more than ``RELEVEL_DEG`` and it is more certain than the estimate the world
+was levelled to (a handful of events over a long run; a reloaded map keeps its levelling until
+this session's readings beat it). Levelling keeps the heading: the new x axis is keyframe 0's viewing
 direction made horizontal (once levelled, the current x axis), so yaw stays keyframe 0's.
 """
 
