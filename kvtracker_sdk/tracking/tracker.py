@@ -42,6 +42,7 @@ from kvtracker_sdk.errors import (
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking import persistence
 from kvtracker_sdk.tracking.depth_input import check_depth, depth_to_model
 from kvtracker_sdk.tracking.events import EventBus, EventSource
@@ -121,6 +122,7 @@ class Tracker(EventSource):
         self._regions = RegionPropagator(margin=cfg.object.crop_margin_px,
                                          models=self._keeper.objects)
         self._segmenter = _checked_segmenter(segmenter)
+        self._depth_undistort = Undistorter()  # depth follows its colour frame's undistortion
 
     @classmethod
     def from_pretrained(cls, weights: str | Path, **config: Any) -> Tracker:
@@ -476,15 +478,18 @@ class Tracker(EventSource):
                 mask, segmented = self._regions.input_mask(
                     image, index, kf_map, self._segmenter, min_side=self._preparer.patch_size)
             prompt_ms = _ms(start)  # predicting the region (and asking the segmenter)
+            frame_camera = _checked_camera(camera) if camera is not None else self._camera
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
                 session_input_size=self._input_size,
                 map_resolution=None if kf_map is None else kf_map.resolution,
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
-                camera=_checked_camera(camera) if camera is not None else self._camera,
+                camera=frame_camera,
             )
             if depth is not None:
                 metres = check_depth(depth, depth_scale, frame.input_size)
+                if frame_camera is not None:  # registered to the colour frame: undistorted alike
+                    metres = self._depth_undistort(metres, frame_camera, nearest=True)
                 frame = replace(frame, depth=depth_to_model(
                     metres, frame.transform, frame.image.shape[:2]))
             down = check_gravity(gravity)

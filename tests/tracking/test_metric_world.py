@@ -379,3 +379,22 @@ def test_live_frames_carry_their_depth_and_gravity() -> None:
         world = tracker.map_status.world
         assert tracker.stats.processed == 3
     assert world.scale_source is ScaleSource.DEPTH and world.gravity_aligned
+
+
+def test_depth_is_undistorted_like_its_colour_frame() -> None:
+    from kvtracker_sdk.backends.simulated_scene import camera_matrix
+    from kvtracker_sdk.geometry.camera import Camera
+    from kvtracker_sdk.preprocess.undistort import Undistorter
+
+    backend = SimulatedBackend(orbit(10), seed=1)
+    frame = next(backend.frames(SIZE, stop=1, textured=False))
+    camera = Camera.from_K(camera_matrix(SIZE), SIZE[1], SIZE[0], distortion=(0.25, -0.1, 0, 0))
+    # depth = 1 m + 1 mm per column: undistortion moves columns, so it shows
+    depth = (1.0 + 0.001 * np.arange(SIZE[1], dtype=np.float32))[None, :].repeat(SIZE[0], 0)
+    with make_tracker(backend) as tracker:
+        tracker.push_frame(frame.image, camera=camera, depth=depth)
+        stored = tracker.keyframe_map.keyframes[0].sensor_depth  # type: ignore[union-attr]
+    expected = Undistorter()(depth, camera, nearest=True)
+    assert stored is not None and np.array_equal(stored, expected)  # model size = input size
+    assert not np.array_equal(stored, depth)
+    assert set(np.unique(stored)) <= set(np.unique(depth)) | {0.0}  # no blended depths
