@@ -16,6 +16,8 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   ├── MaskError
     │   ├── BBoxError
     │   ├── ResolutionChangedError
+    │   ├── DepthError                   a depth image or its depth scale cannot be used
+    │   ├── GravityError                 a gravity vector is not 3 finite numbers, or is zero
     │   ├── SourceError                  an image source (folder, video, dataset) cannot be read
     │   │   ├── SourceOpenError          cannot be opened at all: no such camera, stream or path
     │   │   └── FrameDecodeError         one frame of an opened source cannot be decoded
@@ -53,7 +55,9 @@ __all__ = [
     "CheckpointMismatchError",
     "CompileError",
     "ConfigError",
+    "DepthError",
     "EvaluationError",
+    "GravityError",
     "IllegalTransitionError",
     "ImageDtypeError",
     "ImageShapeError",
@@ -126,6 +130,14 @@ class BBoxError(InputError):
 
 class ResolutionChangedError(InputError):
     """The image size changed in the middle of a session."""
+
+
+class DepthError(InputError):
+    """The depth image has the wrong shape, dtype or values, or its depth scale is missing."""
+
+
+class GravityError(InputError):
+    """The gravity vector is not 3 finite numbers, or is (nearly) zero."""
 
 
 class SourceError(InputError):

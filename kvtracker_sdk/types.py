@@ -23,6 +23,7 @@ from kvtracker_sdk.geometry.se3 import (
     quat_wxyz_from_rotation,
     quat_xyzw_from_rotation,
 )
+from kvtracker_sdk.world import GravityEstimate, MapWorld, ScaleEstimate
 
 __all__ = [
     "FrameResult",
@@ -159,6 +160,12 @@ class MapStatus:
     retry_at_frame: int | None = None
     # frames whose tracking pass failed (see ``FrameResult.error``) since the tracker began
     failed_tracks: int = 0
+    # the world frame's units and axes (``kvtracker_sdk.world``): metric? gravity-aligned?
+    world: MapWorld = MapWorld()
+    # each scale source's latest estimate of the world's unit, with its uncertainty
+    scale_estimates: tuple[ScaleEstimate, ...] = ()
+    # the up direction measured from gravity readings (None: no reading yet)
+    gravity: GravityEstimate | None = None
 
 
 class RegionSource(str, enum.Enum):

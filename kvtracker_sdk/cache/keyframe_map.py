@@ -18,6 +18,7 @@ import numpy as np
 
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.world import MapWorld
 
 __all__ = ["LEGACY_PREPROCESSING", "Keyframe", "KeyframeMap"]
 
@@ -39,9 +40,13 @@ class Keyframe:
     confidence_map: np.ndarray  # float32 [H, W] in [0, 1], from the latest mapping pass
     local_points: np.ndarray  # float32 [H, W, 3], camera frame, world scale
     mean_confidence: float  # mean confidence over the mask (all pixels without a mask)
+    # float32 [H, W] metres from a depth sensor, registered and resized to the model image (0 =
+    # invalid); None without one. Kept in memory for the metric scale, not saved in map files.
+    sensor_depth: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("image", "mask", "T_world_cam", "confidence_map", "local_points"):
+        for name in ("image", "mask", "T_world_cam", "confidence_map", "local_points",
+                     "sensor_depth"):
             value = getattr(self, name)
             if value is not None:
                 value.setflags(write=False)
@@ -66,6 +71,8 @@ class KeyframeMap:
     preprocessing: str = LEGACY_PREPROCESSING  # name of what prepared the keyframe images
     # keyframes inserted incrementally since the last full mapping pass (not saved in files)
     insertions: int = 0
+    # the world frame's units and axes (metric? gravity-aligned?): the map file's "world" field
+    world: MapWorld = MapWorld()
 
     @property
     def num_keyframes(self) -> int:

@@ -141,6 +141,10 @@ _CODES: tuple[tuple[type[BaseException], ExitCode, Hint], ...] = (
         "every frame of a run must have the first frame's size (with --load-map: the size the "
         "map's frames had); resize the frames or start a new run",
     ),
+    (errors.DepthError, ExitCode.INPUT, "--depth images must match their frames (same size, "
+     "registered); integer images need --depth-scale (metres per unit)"),
+    (errors.GravityError, ExitCode.INPUT, "gravity is 3 finite numbers in the camera frame "
+     "(an accelerometer reading), not near zero"),
     (errors.MaskError, ExitCode.INPUT, "masks are images of the frames' size, one per frame "
      "(--masks DIR, natural order); each must select some pixels"),
     (errors.BBoxError, ExitCode.INPUT, "--bbox is x0,y0,x1,y1 in pixels of the frame, "

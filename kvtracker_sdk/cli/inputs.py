@@ -8,6 +8,9 @@ INPUT is opened by ``kvtracker_sdk.io.sources.open_source`` (video, image folder
 - ``--bbox x0,y0,x1,y1``: one box in pixels of the input frames, used for every frame (an
   object that stays roughly in place, e.g. on a turntable), or with ``--bbox-once`` for the
   first frame only (the tracker predicts the object's region after it).
+
+RGB-D: ``--depth DIR`` adds a depth image registered to each colour frame (``io/depth_frames.py``:
+a TUM ``depth.txt`` matched by time, or images matched by position); the map becomes metric.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 
 from kvtracker_sdk.cli.run_loop import InputFrame
 from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError
+from kvtracker_sdk.io.depth_frames import DepthFolder
 from kvtracker_sdk.io.regular_file import read_regular_bytes
 from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
 
@@ -99,9 +103,12 @@ def read_frames(
     masks: MaskFolder | None = None,
     bbox: tuple[float, float, float, float] | None = None,
     bbox_first_only: bool = False,
+    depth: DepthFolder | None = None,
+    depth_scale: float | None = None,
 ) -> Iterator[InputFrame]:
     """The selected frames of ``source``, each with its mask (by source position) or the box
-    (``bbox_first_only``: the first selected frame only).
+    (``bbox_first_only``: the first selected frame only), and its depth image from ``depth``
+    (raw units, ``depth_scale`` metres each; None: the folder's own, TUM's 1/5000).
 
     Skipped frames are still decoded (sources read sequentially, as a video must), so a large
     ``stride`` saves tracking time, not decoding time. A frame or mask that cannot be read is
@@ -120,11 +127,15 @@ def read_frames(
             continue
         try:
             mask = masks.mask(frame.frame_index) if masks is not None else None
-        except MaskError as error:
+            image_depth = (depth.depth(frame.frame_index, frame.timestamp)
+                           if depth is not None else None)
+        except InputError as error:  # a bad mask or depth image: the --on-bad-frame policy
             yield InputFrame(frame.image, frame.timestamp, error=error)
             continue
         box = None if bbox_first_only and used > 1 else bbox
-        yield InputFrame(frame.image, frame.timestamp, mask=mask, bbox=box)
+        scale = depth_scale if depth_scale is not None or depth is None else depth.scale
+        yield InputFrame(frame.image, frame.timestamp, mask=mask, bbox=box, depth=image_depth,
+                         depth_scale=scale)
 
 
 class _Unreadable(NamedTuple):

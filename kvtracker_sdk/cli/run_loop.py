@@ -62,6 +62,8 @@ class InputFrame:
     mask: np.ndarray | None = None
     bbox: tuple[float, float, float, float] | None = None
     error: InputError | None = None
+    depth: np.ndarray | None = None  # registered depth image (raw units or metres), if any
+    depth_scale: float | None = None  # metres per raw depth unit
 
 
 @dataclass(frozen=True)
@@ -190,7 +192,8 @@ def run_frames(
                 if frame.error is not None:
                     raise frame.error
                 result = tracker.push_frame(
-                    frame.image, timestamp=frame.timestamp, mask=frame.mask, bbox=frame.bbox
+                    frame.image, timestamp=frame.timestamp, mask=frame.mask, bbox=frame.bbox,
+                    depth=frame.depth, depth_scale=frame.depth_scale,
                 )
             except InputError as error:  # the tracker and its map are untouched
                 stamp = frame.timestamp if math.isfinite(frame.timestamp) else None

@@ -19,6 +19,7 @@ from kvtracker_sdk.cli.run_loop import BadFramePolicy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import ConfigError, MaskError
+from kvtracker_sdk.io.depth_frames import DepthFolder
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import StateReason
 
@@ -109,6 +110,13 @@ def track(
     view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
     ros2_bag: Annotated[Path | None, typer.Option(
         help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,
+    depth: Annotated[Path | None, typer.Option(
+        help="RGB-D: depth images registered to the frames (a TUM sequence or depth/ folder with "
+        "depth.txt, matched by time; or images matched by position). The map becomes metric. [default: none]",
+        metavar="DIR")] = None,
+    depth_scale: Annotated[float | None, typer.Option(
+        help="Metres per unit of the depth images (RealSense 0.001). [default: TUM's 1/5000 "
+        "with depth.txt; needed otherwise for integer images]")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
     from kvtracker_sdk.io.camera_files import read_camera_file
@@ -135,6 +143,7 @@ def track(
         source = PacedSource(source)
     intrinsics = read_camera_file(camera) if camera is not None else source.camera()
     mask_folder = MaskFolder(masks) if masks is not None else None
+    depth_folder = DepthFolder(depth) if depth is not None else None
     _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box,
                          loaded=load_map is not None)
     options = OutputOptions(
@@ -152,7 +161,8 @@ def track(
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box,
-                                 bbox_first_only=bbox_once)
+                                 bbox_first_only=bbox_once, depth=depth_folder,
+                                 depth_scale=depth_scale)
             with live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as outs:
                 run_session(state, tracker, frames, total=selection.count(len(source)),
                             description=description, options=outs.around(options),

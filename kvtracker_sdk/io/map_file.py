@@ -159,6 +159,7 @@ def _saved_info(
         user_metadata=dict(keyframe_map.metadata),
         tensor_sha256={},
         preprocessing=keyframe_map.preprocessing,
+        world=keyframe_map.world,
         layer_lengths=(
             tuple(cache.layer_length(i) for i in range(cache.layout.num_layers))
             if cache.pruned

@@ -49,10 +49,12 @@ from kvtracker_sdk.io.map_schema import (
     QUANTIZATION_FIELD,
     QUANTIZED_CACHE_DTYPES,
     RIGID_ATOL,
+    WORLD_FIELD,
     TensorSpec,
     check_tensor_table,
     tensor_schema,
 )
+from kvtracker_sdk.world import MapWorld, ScaleSource
 
 __all__ = [
     "MapInfo",
@@ -108,6 +110,8 @@ class MapInfo:
     # how the keyframe arrays are stored (optional header "keyframe_encoding", version 3):
     # "full" (absent) or a compact encoding of io/keyframe_codec.py
     keyframe_encoding: str = FULL
+    # the world frame's units and axes (optional header "world"; absent = MapWorld())
+    world: MapWorld = MapWorld()
 
     @property
     def layout(self) -> CacheLayout:
@@ -206,6 +210,8 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         metadata[KEYFRAME_ENCODING_FIELD] = info.keyframe_encoding
     if info.quantized:  # version 2: what the scale tensors mean
         metadata[QUANTIZATION_FIELD] = _dumps(quantization_description(info.dtype))
+    if not info.world.is_default:  # optional: a map in arbitrary units and axes omits it
+        metadata[WORLD_FIELD] = _dumps(info.world.to_dict())
     if info.camera is not None:  # optional: maps saved without known intrinsics omit it
         source = info.camera_source.value if info.camera_source is not None else None
         metadata["camera"] = _dumps({**info.camera.to_dict(), "source": source})
@@ -399,6 +405,33 @@ def _decode_camera(fields: _Fields) -> tuple[Camera | None, IntrinsicsSource | N
     return camera, source
 
 
+def _optional_number(fields: _Fields, raw: dict[str, Any], key: str) -> float | None:
+    value = raw.get(key)
+    if value is None:
+        return None
+    if not _is_finite_number(value) or value < 0:
+        raise fields.fail(f"header field '{WORLD_FIELD}': {key} must be a number >= 0 or null")
+    return float(value)
+
+
+def _decode_world(fields: _Fields) -> MapWorld:
+    """The optional ``world`` field (absent in maps of arbitrary scale and axes, and in maps
+    saved before it was recorded)."""
+    if WORLD_FIELD not in fields.metadata:
+        return MapWorld()
+    raw = fields.json(WORLD_FIELD, dict)
+    try:
+        source = ScaleSource(raw.get("scale_source"))
+    except ValueError as exc:
+        raise fields.fail(f"header field '{WORLD_FIELD}': unknown scale_source "
+                          f"{str(raw.get('scale_source'))[:40]!r}") from exc
+    aligned = raw.get("gravity_aligned")
+    if not isinstance(aligned, bool):
+        raise fields.fail(f"header field '{WORLD_FIELD}': gravity_aligned must be true or false")
+    return MapWorld(source, _optional_number(fields, raw, "scale_uncertainty"), aligned,
+                    _optional_number(fields, raw, "gravity_uncertainty_deg"))
+
+
 def _decode_created(fields: _Fields) -> datetime:
     try:
         created = datetime.fromisoformat(fields.text("created_utc"))
@@ -516,6 +549,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         camera_source=camera_source,
         layer_lengths=layer_lengths,
         keyframe_encoding=_decode_keyframe_encoding(fields, version),
+        world=_decode_world(fields),
     )
 
 

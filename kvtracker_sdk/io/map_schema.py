@@ -72,6 +72,7 @@ __all__ = [
     "PRUNED_FORMAT_VERSION",
     "RIGID_ATOL",
     "TensorSpec",
+    "WORLD_FIELD",
     "check_tensor_table",
     "layer_kept",
     "layer_key",
@@ -91,6 +92,9 @@ QUANTIZATION_FIELD = "cache_quantization"
 # Optional header field (no version bump: a version-1 reader ignores it): the name of the
 # preprocessing that prepared the keyframe images; absent = LEGACY_PREPROCESSING.
 PREPROCESSING_FIELD = "preprocessing"
+# Optional header field (no version bump: older readers ignore it): the world frame's units and
+# axes (kvtracker_sdk.world.MapWorld as JSON); absent = arbitrary scale, keyframe 0's axes.
+WORLD_FIELD = "world"
 # Header field of a pruned map (version 2): the number of tokens each cached layer kept.
 LAYER_LENGTHS_FIELD = "layer_lengths"
 PRUNED_FORMAT_VERSION = 2  # the oldest version that holds a pruned map

@@ -309,4 +309,5 @@ def map_from_parts(
         resolution=info.resolution,
         metadata=dict(info.user_metadata),
         preprocessing=info.preprocessing,
+        world=info.world,
     )

@@ -42,7 +42,13 @@ from kvtracker_sdk.errors import ConfigError, MissingDependencyError
 from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
 from kvtracker_sdk.io.ros2_messages import RosMessages
-from kvtracker_sdk.io.ros_frames import FrameNames, OdometrySplit, checked_extrinsic, map_from_world
+from kvtracker_sdk.io.ros_frames import (
+    FrameNames,
+    OdometrySplit,
+    checked_extrinsic,
+    map_from_world,
+    map_in_world,
+)
 from kvtracker_sdk.types import FrameResult, TrackingState
 
 __all__ = ["Ros2BagWriter", "TOPICS", "write_ros2_bag"]
@@ -89,6 +95,7 @@ class Ros2BagWriter:
         max_points: int = 100_000,
         min_confidence: float = 0.5,
         frustum_size: float = 0.1,
+        gravity_aligned: bool = False,
     ) -> None:
         try:
             from rosbags.rosbag2 import StoragePlugin, Writer
@@ -124,6 +131,10 @@ class Ros2BagWriter:
         self._path_written = 0  # poses in the last published path
         self._static_written = False
         self._closed = False
+        # the world is z up (gravity readings were given): map = world; else map follows the
+        # camera's body axes. Set from each map written (``write_map``), so a world levelled
+        # during a live run switches with its map update (a new generation: a pose jump in odom)
+        self.gravity_aligned = bool(gravity_aligned)
         self.counts: dict[str, int] = dict.fromkeys(TOPICS, 0)
 
     def _connect(self, topic: str, msgtype: str) -> Any:
@@ -165,7 +176,8 @@ class Ros2BagWriter:
             valid = result.pose_valid and result.pose is not None
             if valid and result.pose is not None:
                 continuous = self._previous_valid and result.map_generation == self._generation
-                T_map_base = map_from_world(result.pose.T_world_cam, self.T_base_optical)
+                T_map_base = map_from_world(result.pose.T_world_cam, self.T_base_optical,
+                                            gravity_aligned=self.gravity_aligned)
                 T_map_odom, T_odom_base = self._split.update(T_map_base, continuous=continuous)
                 self._write("/tf", now, self._messages.tf([
                     self._messages.transform(now, names.map, names.odom, T_map_odom),
@@ -227,7 +239,9 @@ class Ros2BagWriter:
         if len(points) > self.max_points:
             keep = np.random.default_rng(0).choice(len(points), self.max_points, replace=False)
             points, colors = points[np.sort(keep)], colors[np.sort(keep)]
-        T_map_world = self.T_base_optical
+        with self._lock:
+            self.gravity_aligned = keyframe_map.world.gravity_aligned
+        T_map_world = map_in_world(self.T_base_optical, gravity_aligned=self.gravity_aligned)
         points_map = points @ T_map_world[:3, :3].T + T_map_world[:3, 3]
         poses = {kf.keyframe_id: T_map_world @ kf.T_world_cam for kf in keyframe_map.keyframes}
         with self._lock:
@@ -277,6 +291,8 @@ def write_ros2_bag(
     (``intrinsics``, ``T_base_optical``, ...). Returns the message count per topic.
     """
     width, height = image_size
+    if keyframe_map is not None:  # the run's final world: z up if it was levelled
+        options.setdefault("gravity_aligned", keyframe_map.world.gravity_aligned)
     with Ros2BagWriter(path, **options) as writer:
         if keyframe_map is not None:
             writer.estimate_intrinsics(keyframe_map)  # camera_info from the first frame on

@@ -9,7 +9,10 @@ Tree: ``map -> odom -> base_link -> camera_optical_frame``.
 - ``map``: the tracker's world frame re-expressed in body axes: map is where base_link was when
   the world's origin camera (keyframe 0, identity) was taken, i.e. ``T_map_world =
   T_base_optical``. So ``T_map_base = T_base_optical @ T_world_cam @ T_base_optical⁻¹``, and
-  with the default extrinsic a level camera gives z up in map.
+  with the default extrinsic a level camera gives z up in map. A **gravity-aligned** world
+  (``MapWorld.gravity_aligned``: gravity readings were given) already has REP 103 axes — z up,
+  x keyframe 0's viewing direction made horizontal, y left — so it *is* the map frame:
+  ``T_map_world = I`` and map's z is up whatever the camera's tilt was.
 - Pose jumps (REP 105): ``odom -> base_link`` is continuous. Within a *segment* (consecutive
   valid frames of one map generation) it moves with the tracked pose. At a segment start (the
   first valid frame after a relocalisation or after frames without a valid pose, and the first
@@ -18,8 +21,8 @@ Tree: ``map -> odom -> base_link -> camera_optical_frame``.
   odom``, which otherwise stays constant. ``map -> odom -> base_link`` always composes to the
   tracked pose exactly.
 
-Scale: monocular tracking has no metric scale; units are the world frame's (the first mapping
-pass's), not metres, unless the app rescales them.
+Scale: units are the world frame's: metres when the world is metric (depth frames or a known
+size, ``MapWorld.metric``), else the first mapping pass's arbitrary unit.
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ import numpy as np
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.se3 import check_rigid, invert_rigid
 
-__all__ = ["DEFAULT_T_BASE_OPTICAL", "FrameNames", "OdometrySplit", "map_from_world"]
+__all__ = [
+    "DEFAULT_T_BASE_OPTICAL", "FrameNames", "OdometrySplit", "map_from_world", "map_in_world",
+]
 
 # optical z (forward) = base x, optical x (right) = -base y, optical y (down) = -base z
 DEFAULT_T_BASE_OPTICAL = np.array(
@@ -59,9 +64,18 @@ def checked_extrinsic(T_base_optical: np.ndarray | None) -> np.ndarray:
     return T.copy()
 
 
-def map_from_world(T_world_cam: np.ndarray, T_base_optical: np.ndarray) -> np.ndarray:
+def map_in_world(T_base_optical: np.ndarray, *, gravity_aligned: bool = False) -> np.ndarray:
+    """``T_map_world`` [4, 4]: the identity for a gravity-aligned world (already z up), else
+    ``T_base_optical`` (see the module docstring)."""
+    return np.eye(4) if gravity_aligned else np.array(T_base_optical, dtype=np.float64)
+
+
+def map_from_world(
+    T_world_cam: np.ndarray, T_base_optical: np.ndarray, *, gravity_aligned: bool = False
+) -> np.ndarray:
     """``T_map_base`` [4, 4] of a tracked camera pose ``T_world_cam`` (see the module docstring)."""
-    return T_base_optical @ T_world_cam @ invert_rigid(T_base_optical)
+    T_map_world = map_in_world(T_base_optical, gravity_aligned=gravity_aligned)
+    return T_map_world @ T_world_cam @ invert_rigid(T_base_optical)
 
 
 class OdometrySplit:

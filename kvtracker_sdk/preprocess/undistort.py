@@ -29,11 +29,14 @@ class Undistorter:
         self._max = max(1, int(max_cameras))
         self._lock = threading.Lock()
 
-    def __call__(self, image: np.ndarray, camera: Camera) -> np.ndarray:
+    def __call__(
+        self, image: np.ndarray, camera: Camera, *, nearest: bool = False
+    ) -> np.ndarray:
         """``image`` [H, W, C] (any dtype OpenCV remaps) without ``camera``'s distortion.
 
         Returns ``image`` itself when the camera has none. InputError when the image is not
-        the camera's size.
+        the camera's size. ``nearest``: nearest-neighbour sampling (a depth image: blending
+        would make depths where nothing is, at edges and beside holes).
         """
         if not camera.has_distortion:
             return image
@@ -45,7 +48,8 @@ class Undistorter:
         import cv2
 
         map_x, map_y = self._maps_for(camera, cv2)
-        return cv2.remap(image, map_x, map_y, interpolation=cv2.INTER_LINEAR,
+        interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+        return cv2.remap(image, map_x, map_y, interpolation=interpolation,
                          borderMode=cv2.BORDER_CONSTANT)
 
     def _maps_for(self, camera: Camera, cv2: Any) -> tuple[Any, Any]:

@@ -137,7 +137,10 @@ class TrackerNode:
         valid = result.pose_valid and result.pose is not None
         if valid and result.pose is not None:
             continuous = self._previous_valid and result.map_generation == self._generation
-            T_map_base = map_from_world(result.pose.T_world_cam, self.T_base_optical)
+            kf_map = self.tracker.keyframe_map  # a levelled world is the map frame (z up)
+            aligned = kf_map is not None and kf_map.world.gravity_aligned
+            T_map_base = map_from_world(result.pose.T_world_cam, self.T_base_optical,
+                                        gravity_aligned=aligned)
             T_map_odom, T_odom_base = self._split.update(T_map_base, continuous=continuous)
             self._tf.publish(self._tf_message([
                 self._transform(stamp, names.map, names.odom, T_map_odom),

@@ -32,6 +32,7 @@ from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking.gauge import Correction
 from kvtracker_sdk.types import StateReason, TrackingState
+from kvtracker_sdk.world import WorldAlignment
 
 __all__ = [
     "BackendFailedEvent",
@@ -117,7 +118,8 @@ class KeyframeRejectedEvent:
 
 @dataclass(frozen=True)
 class MapUpdatedEvent:
-    """A new map was installed (bootstrap, accepted rebuild, loaded map, new map).
+    """A new map was installed (bootstrap, accepted rebuild, loaded map, new map), or the map was
+    re-expressed in a metric or levelled world (cause "world": see ``WorldFrameChangedEvent``).
 
     ``gauge`` maps the new mapping pass's raw frame to the world frame. ``corrections`` holds, per
     keyframe id kept from the previous map, the rigid world-frame correction ``C`` with
@@ -126,7 +128,7 @@ class MapUpdatedEvent:
     """
 
     generation: int
-    cause: str  # "bootstrap", "keyframe", "new_map", "loaded"
+    cause: str  # "bootstrap", "keyframe", "new_map", "loaded", "world"
     keyframe_ids: tuple[int, ...]
     evicted_ids: tuple[int, ...]
     gauge: Sim3
@@ -167,12 +169,19 @@ class WorldFrameChangedEvent:
     Sent after a map was dropped and another one started (``reason``: TIMEOUT for the ``reset``
     timeout policy, NEW_MAP for ``new_map``, RESET for ``reset()``) or a saved map replaced one
     (MAP_LOADED). Rebuilds of one map keep its world frame and never send this.
+
+    Also sent when the world was re-expressed in metres or levelled (``reason``: a
+    ``WorldAlignment``, METRIC_SCALE or GRAVITY): then ``transform`` (new world <- old world, a
+    Sim(3) about the origin) moves anything the app placed in the old world into the new one:
+    ``transform.apply_to_points(p)``, ``transform.apply_to_pose(T)``. It is None for an unrelated
+    new world.
     """
 
-    reason: StateReason
+    reason: StateReason | WorldAlignment
     previous_generation: int  # the last map of the old world frame (0: none)
     generation: int  # the first map of the new world frame
     frame_index: int | None  # the frame that built it (None for a loaded map)
+    transform: Sim3 | None = None
 
 
 @dataclass(frozen=True)

@@ -84,6 +84,7 @@ class PreparedFrame:
     transform: PixelTransform  # pushed image pixel -> ``image`` pixel (crop and resize)
     preprocessing: str  # name of the preprocessing that made ``image`` (recorded in maps)
     camera: Camera | None = None  # the given intrinsics of the input image, undistorted
+    depth: np.ndarray | None = None  # float32 [h, w] sensor depth, metres, model image (0 = hole)
 
 
 def check_image(image: Any, *, min_side: int) -> np.ndarray:

@@ -25,6 +25,7 @@ from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TimeoutPolicy, TrackerConfig
 from kvtracker_sdk.errors import TrackingFailedError
+from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.tracking.events import (
     BackendFailedEvent,
     EventBus,
@@ -40,7 +41,9 @@ from kvtracker_sdk.tracking.map_keeper import MapKeeper
 from kvtracker_sdk.tracking.quality import ConfidenceMonitor, frame_confidence
 from kvtracker_sdk.tracking.reporting import WorldFrameChange, failure_event, rebuild_events
 from kvtracker_sdk.tracking.states import transition
+from kvtracker_sdk.tracking.world_alignment import WorldAligner, WorldChange
 from kvtracker_sdk.types import Pose, StateReason, TrackedPose, TrackerSnapshot, TrackingState
+from kvtracker_sdk.world import WorldAlignment
 
 __all__ = ["FrameLoop", "Step"]
 
@@ -78,6 +81,8 @@ class FrameLoop:
         self.failed_tracks = self._failed_tracks_in_row = 0
         self._world_change: WorldFrameChange | None = None  # a dropped world frame, not yet told
         self.predicted_K: np.ndarray | None = None  # the last tracked frame's network K (DA3)
+        self.aligner = WorldAligner()  # metric scale and gravity (world_alignment)
+        self.world_changes = 0  # world transforms applied so far (the tracker's region poses)
 
     @property
     def state(self) -> TrackingState:
@@ -89,13 +94,15 @@ class FrameLoop:
 
     # ------------------------------------------------------------------ one frame
     def step(
-        self, frame: PreparedFrame, index: int, timings: dict[str, float], *,
-        keyframe_allowed: bool = True,
+        self, frame: PreparedFrame, index: int, timings: dict[str, float],
+        gravity: np.ndarray | None = None, *, keyframe_allowed: bool = True,
     ) -> Step:
-        """Process frame ``index`` and publish the new snapshot; ``keyframe_allowed`` False:
-        the frame may not become a keyframe (its mask is not the object's)."""
+        """Process frame ``index`` (``gravity``: its reading, camera frame, pointing down) and
+        publish the new snapshot; ``keyframe_allowed`` False: the frame may not become a keyframe
+        (its mask is not the object's)."""
         self.collect(index, timings)
         step = self._process(frame, index, timings, keyframe_allowed)
+        step = self._align_world(step, index, gravity)
         tracked = self.snapshot.pose
         if step.valid and step.pose is not None:
             tracked = TrackedPose(step.pose, index, frame.timestamp)
@@ -107,6 +114,48 @@ class FrameLoop:
     @property
     def generation(self) -> int:
         return self.keeper.status().generation
+
+    # ------------------------------------------------------------------ world alignment
+    def _align_world(self, step: Step, index: int, gravity: np.ndarray | None) -> Step:
+        """Gravity sample and stated object height of this frame: levelling or rescaling the
+        world when due (the step's pose follows into the new world)."""
+        kf_map = self.keeper.map
+        if kf_map is None:
+            return step
+        if gravity is not None and step.valid and step.pose is not None:
+            level = self.aligner.after_pose(kf_map, step.pose.T_world_cam, gravity)
+            if level is not None:
+                step = self._moved_step(step, self.apply_world(level, index))
+        # measured in the world as it is now (levelled first: "height" is along up)
+        rescale = self.aligner.pending_object_height(self.keeper.map, index)
+        if rescale is not None:
+            step = self._moved_step(step, self.apply_world(rescale, index))
+        return step
+
+    @staticmethod
+    def _moved_step(step: Step, transform: Sim3) -> Step:
+        if step.pose is None:
+            return step
+        return step._replace(pose=Pose(transform.apply_to_pose(step.pose.T_world_cam)))
+
+    def apply_world(self, change: WorldChange, index: int | None) -> Sim3:
+        """Re-express the map (and the last pose) in the new world and tell the app."""
+        previous = self.keeper.generation
+        new_map = self.keeper.transform_world(change)
+        W = change.transform
+        self.world_changes += 1
+        if change.reason is WorldAlignment.GRAVITY:
+            self.aligner.gravity.rotate(W.rotation)
+        if W.scale != 1.0:
+            self.aligner.rescaled(W.scale)
+        tracked = self.snapshot.pose
+        if tracked is not None:
+            tracked = replace(tracked, pose=Pose(W.apply_to_pose(tracked.pose.T_world_cam)))
+        self.snapshot = replace(self.snapshot, pose=tracked, map_generation=new_map.generation)
+        self.events.post(EventKind.MAP_UPDATED, MapUpdatedEvent.of(new_map, "world"))
+        self.events.post(EventKind.WORLD_FRAME_CHANGED, WorldFrameChangedEvent(
+            change.reason, previous, new_map.generation, index, W))
+        return W
 
     def _process(
         self, frame: PreparedFrame, index: int, timings: dict[str, float], keyframe_allowed: bool
@@ -222,6 +271,9 @@ class FrameLoop:
         if outcome.request.previous is None:
             self._world_change = None  # told (if it was pending): the new world frame is open
         self.monitor.set_reference(outcome.new_map.keyframes[0].mean_confidence)
+        if self.keeper.map is not None:
+            for change in self.aligner.after_rebuild(outcome, self.keeper.map):
+                self.apply_world(change, index)
         if self.state is _S.MAPPING:
             reason = _R.NEW_MAP if outcome.request.cause == "new_map" else _R.BOOTSTRAP
             self.change(_S.TRACKING, reason, index)
@@ -233,6 +285,7 @@ class FrameLoop:
         self.drop_map(_R.MAP_LOADED)
         change, self._world_change = self._world_change, None
         self.keeper.load(kf_map, rebuild=rebuild)
+        self.aligner.loaded(kf_map)
         # the backend may have been swapped for another runtime since the map was read
         self.keeper.convert_cache(self.backend.info.dtype, self.backend.info.device)
         self.monitor.set_reference(kf_map.keyframes[0].mean_confidence)
@@ -249,6 +302,7 @@ class FrameLoop:
         elif self._world_change is not None:
             self._world_change = (why, self._world_change[1])
         self.keeper.drop(floor=floor)
+        self.aligner.reset()
         self.snapshot = replace(self.snapshot, pose=None)
 
     def change(self, target: TrackingState, reason: StateReason, index: int | None) -> None:

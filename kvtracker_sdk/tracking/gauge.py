@@ -30,11 +30,12 @@ from kvtracker_sdk.geometry.sim3 import Sim3
 __all__ = ["Correction", "anchor_gauge", "depth_scale", "estimate_gauge", "keyframe_corrections"]
 
 
-def anchor_gauge(raw_pose_keyframe0: np.ndarray) -> Sim3:
-    """First map: the rigid transform putting keyframe 0 at the identity (scale 1: the first
-    pass's scale becomes the world's)."""
+def anchor_gauge(raw_pose_keyframe0: np.ndarray, scale: float = 1.0) -> Sim3:
+    """First map: the transform putting keyframe 0 at the identity. ``scale`` 1: the first pass's
+    scale becomes the world's; a metric scale (metres per raw unit, from sensor depth) makes the
+    world metric from its first map on."""
     T_cam_raw = invert_rigid(raw_pose_keyframe0)
-    return Sim3(T_cam_raw[:3, :3], T_cam_raw[:3, 3], 1.0)
+    return Sim3(T_cam_raw[:3, :3], scale * T_cam_raw[:3, 3], scale)
 
 
 def depth_scale(

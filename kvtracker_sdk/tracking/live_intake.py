@@ -94,6 +94,9 @@ class _Pending:
     camera: Camera | None
     captured_at: float
     color: str = "rgb"
+    depth: Any = None  # the frame's registered depth image (Tracker.push_frame's)
+    depth_scale: Any = None
+    gravity: Any = None
 
 
 class LiveIntake:
@@ -128,20 +131,26 @@ class LiveIntake:
         camera: Camera | None = None,
         captured_at: float | None = None,
         color: str = "rgb",
+        depth: np.ndarray | None = None,
+        depth_scale: float | None = None,
+        gravity: Any = None,
     ) -> None:
         """Hand ``image`` over and return at once (a frame still waiting is dropped).
 
         ``timestamp``: the capture time in seconds (default: ``time.time()`` now), reported in
         the result. ``captured_at``: the capture moment on ``time.perf_counter()``'s clock, for
-        the latency statistics (default: now). The frame is validated by the worker; a bad
-        one goes to ``on_error``. StateError after ``close()``.
+        the latency statistics (default: now). ``depth``/``depth_scale``/``gravity`` travel with
+        the frame (dropped with it). The frame is validated by the worker; a bad one goes to
+        ``on_error``. StateError after ``close()``.
         """
         now = time.perf_counter()
         if self._copy and isinstance(image, np.ndarray):
             image = image.copy()  # the camera may reuse its buffer
+        if self._copy and isinstance(depth, np.ndarray):
+            depth = depth.copy()
         item = _Pending(
             image, time.time() if timestamp is None else timestamp, mask, bbox, camera,
-            now if captured_at is None else captured_at, color,
+            now if captured_at is None else captured_at, color, depth, depth_scale, gravity,
         )
         if self._closing:
             raise StateError("the live intake is closed")
@@ -239,7 +248,8 @@ class LiveIntake:
         try:
             result = self._tracker.push_frame(
                 item.image, timestamp=item.timestamp, mask=item.mask, bbox=item.bbox,
-                camera=item.camera, color=item.color,
+                camera=item.camera, color=item.color, depth=item.depth,
+                depth_scale=item.depth_scale, gravity=item.gravity,
             )
         except KVTrackerError as exc:
             return None, exc

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -29,7 +29,9 @@ from kvtracker_sdk.tracking.gauge import (
     estimate_gauge,
     keyframe_corrections,
 )
+from kvtracker_sdk.tracking.metric_scale import DepthScaleFit, fit_depth_scale
 from kvtracker_sdk.tracking.quality import masked_mean
+from kvtracker_sdk.world import MapWorld, ScaleSource
 
 __all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map", "compact_cache"]
 
@@ -44,6 +46,7 @@ class KeyframeCandidate:
     image: np.ndarray  # uint8 [h, w, 3]
     mask: np.ndarray | None  # bool [h, w]
     preprocessing: str  # name of the preprocessing that made ``image`` (see kvtracker_sdk.preprocess)
+    sensor_depth: np.ndarray | None = None  # float32 [h, w] metres at model resolution (0 = hole)
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,9 @@ class RebuildRequest:
     generation: int  # generation the new map gets if accepted
     # a bootstrap after a lost map: keyframe 0's mean confidence must reach this absolute floor
     min_confidence: float | None = None
+    # take the gauge's scale from the keyframes' sensor depth (a bootstrap with a depth frame, or
+    # a map already metric by depth) instead of from the previous map's depths: metres, no drift
+    anchor_to_depth: bool = False
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,8 @@ class RebuildOutcome:
     reference_confidence: float  # keyframe 0's in this pass (a floored bootstrap: the floor)
     correction: Correction  # how the kept keyframes moved in the world frame
     map_ms: float
+    # this pass's depth against the keyframes' sensor depth (metres per raw unit); None without
+    depth_fit: DepthScaleFit | None = None
 
 
 def _stack_masks(masks: Sequence[np.ndarray | None], size: tuple[int, int]) -> np.ndarray | None:
@@ -85,14 +93,16 @@ def _stack_masks(masks: Sequence[np.ndarray | None], size: tuple[int, int]) -> n
 
 
 def _gauge(
-    request: RebuildRequest, raw_poses: np.ndarray, raw_points: np.ndarray, align: bool
+    request: RebuildRequest, raw_poses: np.ndarray, raw_points: np.ndarray, align: bool,
+    metric_scale: float | None = None,
 ) -> Sim3:
+    """``metric_scale``: metres per raw unit from sensor depth; when given it sets the scale."""
     if not align:
         return Sim3.identity()  # debug: stay in the pass's raw frame
     if request.previous is None or not request.keep:
-        return anchor_gauge(raw_poses[0])
+        return anchor_gauge(raw_poses[0], 1.0 if metric_scale is None else metric_scale)
     shared = len(request.keep)
-    scale = depth_scale(
+    scale = metric_scale if metric_scale is not None else depth_scale(
         [kf.local_points for kf in request.keep],
         list(raw_points[:shared]),
         [kf.mask for kf in request.keep],
@@ -172,7 +182,17 @@ def build_map(
             f"cache of {result.cache.num_keyframes} keyframes"
         )
     _check_finite(result.poses, result.confidence, result.cache)
-    gauge = _gauge(request, result.poses, result.local_points, align_gauge)
+    depth_fit = fit_depth_scale(
+        [s.sensor_depth for s in sources], [points[..., 2] for points in result.local_points],
+        list(result.confidence), [s.mask for s in sources], patch_size=backend.info.patch_size,
+    )
+    anchored = request.anchor_to_depth and depth_fit is not None
+    gauge = _gauge(request, result.poses, result.local_points, align_gauge,
+                   depth_fit.scale if anchored and depth_fit is not None else None)
+    world = previous.world if previous is not None else MapWorld()
+    if anchored and depth_fit is not None:
+        world = replace(world, scale_source=ScaleSource.DEPTH,
+                        scale_uncertainty=depth_fit.relative_uncertainty)
     world_poses = gauge.apply_to_pose(result.poses)
     keyframes = tuple(
         Keyframe(
@@ -185,6 +205,7 @@ def build_map(
             confidence_map=result.confidence[i],
             local_points=result.local_points[i] * np.float32(gauge.scale),  # world scale
             mean_confidence=masked_mean(result.confidence[i], source.mask),
+            sensor_depth=source.sensor_depth,
         )
         for i, source in enumerate(sources)
     )
@@ -198,7 +219,7 @@ def build_map(
         cache = cache.to(storage=cache_storage)
     new_map = KeyframeMap(
         keyframes, cache, gauge, generation=request.generation, resolution=size,
-        preprocessing=candidate_frame.preprocessing,
+        preprocessing=candidate_frame.preprocessing, world=world,
     )
     reference = keyframes[0].mean_confidence
     candidate = keyframes[-1].mean_confidence
@@ -217,4 +238,5 @@ def build_map(
         reference_confidence=reference,
         correction=keyframe_corrections(request.keep, keyframes),
         map_ms=(time.perf_counter() - start) * 1e3,
+        depth_fit=depth_fit,
     )

@@ -104,11 +104,13 @@ def insert_keyframe(
         confidence_map=result.confidence_map,
         local_points=result.local_points * np.float32(gauge.scale),  # world scale
         mean_confidence=confidence,
+        sensor_depth=candidate.sensor_depth,
     )
     keyframes = (*request.keep, inserted)
     new_map = KeyframeMap(
         keyframes, cache, gauge, generation=request.generation, resolution=previous.resolution,
         preprocessing=previous.preprocessing, insertions=previous.insertions + 1,
+        world=previous.world,
     )  # fmt: skip
     accepted = not rejection.enabled or confidence >= rejection.ratio * reference
     return RebuildOutcome(

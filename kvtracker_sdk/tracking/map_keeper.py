@@ -40,15 +40,19 @@ from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import MappingFailedError, MapPreprocessingError, StateError
+from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking import keyframes as policy
 from kvtracker_sdk.tracking.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.frame_input import PreparedFrame
+from kvtracker_sdk.tracking.gauge import keyframe_corrections
 from kvtracker_sdk.tracking.map_builder import KeyframeCandidate, RebuildOutcome, RebuildRequest
 from kvtracker_sdk.tracking.map_insertion import rebuild_or_insert
 from kvtracker_sdk.tracking.mapper import Mapper
 from kvtracker_sdk.tracking.object_model import ObjectModelCache
+from kvtracker_sdk.tracking.world_alignment import WorldChange, transform_map
 from kvtracker_sdk.types import MapStatus
+from kvtracker_sdk.world import ScaleSource
 
 __all__ = ["MapKeeper"]
 
@@ -95,6 +99,8 @@ class MapKeeper:
         self._in_flight: tuple[_Proposal, ...] = ()
         self._waiting: _Proposal | None = None
         self._request: RebuildRequest | None = None  # of the pending rebuild
+        # world transforms applied since the pending rebuild started (its map is in the old world)
+        self._pending_world: Sim3 | None = None
         self._consecutive_failures = 0
         self._count_from_next = False  # a loaded map: the interval counts from its first frame
 
@@ -122,7 +128,43 @@ class MapKeeper:
             rebuilding,
             kf_map.keyframe_ids,
             **extra,  # type: ignore[arg-type]
+            world=kf_map.world,
         )
+
+    # ------------------------------------------------------------------ world transforms
+    def transform_world(self, change: WorldChange) -> KeyframeMap:
+        """Re-express the map in a new world (``change.transform``: new <- old) as a new
+        generation; a rebuild in flight gets the same transform when it is collected, and the
+        candidates' poses move with it. Returns the new map."""
+        kf_map = self.map
+        if kf_map is None:
+            raise StateError("no map to transform")
+        W = change.transform
+        self.generation += 1
+        self.map = transform_map(kf_map, W, generation=self.generation, world=change.world)
+        if self._mapper.pending:
+            self._pending_world = W if self._pending_world is None else W @ self._pending_world
+        self._in_flight = tuple(replace(p, T_world_cam=W.apply_to_pose(p.T_world_cam))
+                                for p in self._in_flight)
+        if self._waiting is not None:
+            self._waiting = replace(
+                self._waiting, T_world_cam=W.apply_to_pose(self._waiting.T_world_cam))
+        return self.map
+
+    def _into_current_world(self, outcome: RebuildOutcome) -> RebuildOutcome:
+        """A rebuild started before a world transform: its map moved into the current world (a
+        newer generation than the transformed map's, corrections against it)."""
+        W, self._pending_world = self._pending_world, None
+        current = self.map
+        if W is None or not outcome.accepted or current is None:
+            return outcome
+        world = current.world
+        depth = ScaleSource.DEPTH
+        if outcome.new_map.world.scale_source is depth and world.scale_source is depth:
+            world = outcome.new_map.world  # anchored to depth again: its fit's uncertainty
+        moved = transform_map(outcome.new_map, W, generation=self.generation + 1, world=world)
+        return replace(outcome, new_map=moved,
+                       correction=keyframe_corrections(current.keyframes, moved.keyframes))
 
     # ------------------------------------------------------------------ whole maps
     def drop(self, *, floor: float | None = None) -> None:
@@ -130,6 +172,7 @@ class MapKeeper:
         absolute mean confidence the next map's keyframe 0 must reach (None: any frame)."""
         self._mapper.discard()
         self._taken = self._started
+        self._pending_world = None
         self.map = None
         self._rebuild_foreign = False
         self._floor = floor
@@ -282,13 +325,17 @@ class MapKeeper:
     ) -> int:
         candidate = KeyframeCandidate(
             self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask,
-            frame.preprocessing,
+            frame.preprocessing, frame.depth,
         )
         self._next_keyframe_id += 1
         self._last_proposed_frame = max(self._last_proposed_frame, index)  # bootstraps count too
         floor = self._floor if previous is None else None
+        # a new world takes its scale from a depth frame if it has one; a world metric by depth
+        # keeps taking it from the sensor (no drift through rebuilds)
+        anchor = previous is None or previous.world.scale_source is ScaleSource.DEPTH
         request = RebuildRequest(
-            previous, keep, evicted, candidate, cause, self.generation + 1, min_confidence=floor
+            previous, keep, evicted, candidate, cause, self.generation + 1, min_confidence=floor,
+            anchor_to_depth=anchor,
         )
         self._request = request
         self._started += 1
@@ -330,6 +377,7 @@ class MapKeeper:
             return self._failed(backend, request, exc)
         if outcome is None:
             return None
+        outcome = self._into_current_world(outcome)
         self._taken, self._request = self._started, None
         self._in_flight, self._consecutive_failures, self._last_error = (), 0, None
         candidate_frame = outcome.request.candidate.frame_index
@@ -350,6 +398,7 @@ class MapKeeper:
     ) -> MappingFailure:
         """Note a failed pass: the map stays, the candidate never existed, retries back off."""
         self._taken, self._request = self._started, None
+        self._pending_world = None
         error = mapping_error(exc, request)
         self._failed_passes += 1
         self._consecutive_failures += 1

@@ -172,6 +172,10 @@ class RegionPropagator:
         """Forget the region, poses and camera (a new session, maybe at another size)."""
         self.last, self._poses, self._camera = None, [], None
 
+    def forget_poses(self) -> None:
+        """The world frame was re-expressed: the kept poses belong to the old one."""
+        self._poses = []
+
     def object_frame(self, kf_map: KeyframeMap | None) -> ObjectFrame | None:
         model = self.models.get(kf_map)
         return None if model is None else model.frame

@@ -42,7 +42,9 @@ from kvtracker_sdk.errors import (
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking import persistence
+from kvtracker_sdk.tracking.depth_input import check_depth, depth_to_model
 from kvtracker_sdk.tracking.events import EventBus, EventSource
 from kvtracker_sdk.tracking.frame_input import FramePreparer, check_time_order, to_rgb
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
@@ -51,6 +53,7 @@ from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveSt
 from kvtracker_sdk.tracking.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
 from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
 from kvtracker_sdk.tracking.segmenter import Segmenter
+from kvtracker_sdk.tracking.world_alignment import WorldChange, check_gravity
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,
@@ -121,6 +124,7 @@ class Tracker(EventSource):
                                          models=self._keeper.objects)
         self._segmenter = _checked_segmenter(segmenter)
         self._searched = 0  # frames tracked unmasked in a row without finding the object
+        self._depth_undistort = Undistorter()  # depth follows its colour frame's undistortion
 
     @classmethod
     def from_pretrained(cls, weights: str | Path, **config: Any) -> Tracker:
@@ -184,7 +188,12 @@ class Tracker(EventSource):
 
     @property
     def map_status(self) -> MapStatus:
-        return replace(self._keeper.status(), failed_tracks=self._loop.failed_tracks)
+        """The map's size and health, its world (metric? gravity-aligned?) and each scale
+        source's estimate with its uncertainty (``kvtracker_sdk.world``)."""
+        aligner = self._loop.aligner
+        return replace(self._keeper.status(), failed_tracks=self._loop.failed_tracks,
+                       scale_estimates=aligner.estimates(),
+                       gravity=aligner.gravity_estimate(self._keeper.map))
 
     def get_pose(self) -> Pose | None:
         """The last valid ``T_world_cam`` (None before the first, and after a reset); which frame
@@ -223,6 +232,44 @@ class Tracker(EventSource):
         checked = _checked_segmenter(segmenter)
         with self._call():
             self._segmenter = checked
+
+    # ------------------------------------------------------------------ metric scale
+    def set_object_height(self, height_m: float, *, uncertainty_m: float = 0.0) -> None:
+        """Object mode: the object's true height in metres. Once the map holds object points
+        (at once, or after the next frames) the world is rescaled so that the object measures
+        ``height_m`` along up (keyframe 0's image up before the world is levelled), with an
+        ``on_world_frame_changed`` event (reason METRIC_SCALE) carrying the rescaling. A world
+        already metric by depth only reports it (``map_status.scale_estimates``)."""
+        height, sigma = _checked_length(height_m, uncertainty_m)
+        with self._call():
+            if not self._object_mode:
+                raise StateError("set_object_height needs object mode; use set_known_distance")
+            self._loop.aligner.state_object_height(height, sigma)
+            self._apply_world(self._loop.aligner.pending_object_height(
+                self._keeper.map, self._loop.snapshot.frame_index))
+
+    def set_known_distance(
+        self, length_m: float, a: Any, b: Any, *, uncertainty_m: float = 0.0
+    ) -> None:
+        """The distance between two things the tracker reported is ``length_m`` metres: ``a``
+        and ``b`` are world points [3] or poses (``Pose``/``TrackedPose``/4x4 ``T_world_cam``:
+        their camera centres), in the current world. The world is rescaled (the event as in
+        ``set_object_height``); StateError without a map. A world already metric by depth only
+        reports it."""
+        length, sigma = _checked_length(length_m, uncertainty_m)
+        p, q = _world_point(a), _world_point(b)
+        with self._call():
+            change = self._loop.aligner.state_length(
+                self._keeper.map, length, float(np.linalg.norm(p - q)), 0.0, sigma,
+                self._loop.snapshot.frame_index)
+            self._apply_world(change)
+
+    def _apply_world(self, change: WorldChange | None) -> None:
+        """Under the lock: apply a world change (from an app's statement) and move the region
+        poses along."""
+        if change is not None:
+            self._loop.apply_world(change, self._loop.snapshot.frame_index)
+            self._regions.forget_poses()
 
     def set_camera(self, camera: Camera | None) -> None:
         """Give (or with None, forget) the input images' intrinsics from the next frame on."""
@@ -348,6 +395,8 @@ class Tracker(EventSource):
         self, image: np.ndarray, timestamp: float | None = None, *, mask: np.ndarray | None = None,
         bbox: Any = None, camera: Camera | None = None, captured_at: float | None = None,
         color: str = "rgb",
+        depth: np.ndarray | None = None, depth_scale: float | None = None,
+        gravity: Any = None,
     ) -> None:
         """Hand a frame to the live worker and return at once (``tracking/live_intake.py``).
 
@@ -357,10 +406,12 @@ class Tracker(EventSource):
         dropped and counted. Results: ``on_result`` callbacks and ``latest()``; counters and
         latency: ``stats``. ``timestamp`` defaults to the wall-clock time now (capture time).
         For live use, build the tracker with ``threading={"async_mapping": True}`` so that
-        rebuilds do not pause tracking.
+        rebuilds do not pause tracking. ``depth``, ``depth_scale``, ``gravity``: as in
+        ``push_frame`` (a depth frame or gravity reading travels with its colour frame).
         """
         self._live().submit(image, timestamp, mask=mask, bbox=bbox, camera=camera,
-                            captured_at=captured_at, color=color)
+                            captured_at=captured_at, color=color, depth=depth,
+                            depth_scale=depth_scale, gravity=gravity)
 
     def on_result(self, callback: ResultCallback) -> None:
         """``callback(FrameResult)`` after each frame the live worker processed (worker thread)."""
@@ -401,6 +452,7 @@ class Tracker(EventSource):
     def push_frame(
         self, image: np.ndarray, timestamp: float | None = None, mask: np.ndarray | None = None,
         bbox: Any = None, camera: Camera | None = None, *, color: str = "rgb",
+        depth: np.ndarray | None = None, depth_scale: float | None = None, gravity: Any = None,
     ) -> FrameResult:
         """Track one frame: an HxWx3 array, uint8 (or float in [0, 1]), RGB channel order.
 
@@ -422,8 +474,18 @@ class Tracker(EventSource):
         call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
         later). ``camera`` gives this frame's intrinsics (else the session's); the result's
         ``intrinsics`` are the input image's: given, predicted or estimated
-        (``tracking/intrinsics.py``). Bad input raises an ``InputError`` subclass before anything
-        changes; backend failures never raise.
+        (``tracking/intrinsics.py``).
+
+        ``depth``: a depth image registered to ``image`` (same H, W; float metres, or integer raw
+        units with ``depth_scale`` metres per unit; 0 = no depth): keyframes with depth make the
+        world metric (``tracking/world_alignment.py``). ``gravity``: the direction of gravity in
+        this frame's camera (3 numbers, OpenCV axes, pointing *down*, any length: a level camera
+        reads about (0, 9.81, 0); an accelerometer at rest measures the opposite, pass its
+        negative); with readings the world's z axis is turned up. Either may be given on some
+        frames only (gravity once, with the first frame, is enough to level the world).
+
+        Bad input raises an ``InputError`` subclass (``DepthError``, ``GravityError``, ...) before
+        anything changes; backend failures never raise.
         """
         start = time.perf_counter()
         with self._call():
@@ -439,19 +501,31 @@ class Tracker(EventSource):
                     mask = self._regions.search_mask(image, min_side=self._preparer.patch_size)
                     searching = True
             prompt_ms = _ms(start)  # predicting the region (and asking the segmenter)
+            frame_camera = _checked_camera(camera) if camera is not None else self._camera
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
                 session_input_size=self._input_size,
                 map_resolution=None if kf_map is None else kf_map.resolution,
                 map_preprocessing=None if kf_map is None else kf_map.preprocessing,
-                camera=_checked_camera(camera) if camera is not None else self._camera,
+                camera=frame_camera,
             )
             check_time_order(frame.timestamp, self._last_timestamp)
+            if depth is not None:
+                metres = check_depth(depth, depth_scale, frame.input_size)
+                if frame_camera is not None:  # registered to the colour frame: undistorted alike
+                    metres = self._depth_undistort(metres, frame_camera, nearest=True)
+                frame = replace(frame, depth=depth_to_model(
+                    metres, frame.transform, frame.image.shape[:2]))
+            down = check_gravity(gravity)
             timings = {"preprocess": _ms(start) - prompt_ms}
             if segmented is not None:
                 timings["segment"] = prompt_ms
             self._loop.predicted_K = None
-            step = self._loop.step(frame, index, timings, keyframe_allowed=not searching)
+            world_changes = self._loop.world_changes
+            step = self._loop.step(frame, index, timings, down,
+                                   keyframe_allowed=not searching)
+            if self._loop.world_changes != world_changes:
+                self._regions.forget_poses()  # extrapolating across worlds would mix them
             intrinsics, source = self._intrinsics.resolve(
                 frame, self._loop.predicted_K, self._keeper.map
             )
@@ -548,6 +622,35 @@ def _check_cache_dtype(config: TrackerConfig, backend: BackendInfo) -> None:
             f"cache_dtype {config.cache_dtype!r} needs the PyTorch backend; the {backend.backend} "
             f"backend reads dense caches only (cache_dtype 'backend')"
         )
+
+
+def _checked_length(length_m: Any, uncertainty_m: Any) -> tuple[float, float]:
+    """(length, 1-sigma) in metres, validated: InputError unless finite, length > 0, sigma >= 0."""
+    try:
+        length, sigma = float(length_m), float(uncertainty_m)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise InputError(f"a known length must be numbers, got {length_m!r}") from exc
+    if not (np.isfinite(length) and length > 0 and np.isfinite(sigma) and sigma >= 0):
+        raise InputError(f"a known length needs length > 0 and uncertainty >= 0 (metres), got "
+                         f"{length}, {sigma}")
+    return length, sigma
+
+
+def _world_point(value: Any) -> np.ndarray:
+    """A world point [3] from a point, a ``Pose``/``TrackedPose`` or a 4x4 pose (its centre)."""
+    if isinstance(value, TrackedPose):
+        value = value.pose
+    if isinstance(value, Pose):
+        return np.asarray(value.translation, dtype=np.float64)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"a known distance needs points [3] or poses, got {value!r}") from exc
+    if array.shape == (4, 4):
+        array = array[:3, 3]
+    if array.shape != (3,) or not np.isfinite(array).all():
+        raise InputError(f"a known distance needs finite points [3] or 4x4 poses, got {array!r}")
+    return array
 
 
 def _checked_segmenter(segmenter: Any) -> Segmenter | None:
