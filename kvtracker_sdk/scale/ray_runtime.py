@@ -104,11 +104,11 @@ def _without_api_server(ray: Any) -> Iterator[None]:
         _log.debug("Ray's dashboard (API server) process is not started: it probes the network")
 
     with _START_LOCK:
-        ray_node.Node.start_api_server = start_no_api_server
+        ray_node.Node.start_api_server = start_no_api_server  # type: ignore[method-assign]
         try:
             yield
         finally:
-            ray_node.Node.start_api_server = original
+            ray_node.Node.start_api_server = original  # type: ignore[method-assign]
 
 
 def _loopback_node_address() -> None:
