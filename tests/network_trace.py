@@ -10,8 +10,14 @@ kernel stops the process only at the traced system calls and the rest runs at fu
   my address" probes start, so it counts too.
 * ``bind`` to any address but loopback (0.0.0.0, ::, a network address) counts: such a server
   can be reached from outside.
-* AF_UNIX, AF_NETLINK (the kernel) and AF_UNSPEC (dissolving a UDP association) are local;
-  any other family counts, so that nothing unknown passes silently.
+* A DNS query counts even to a loopback resolver (``connect`` to port 53 on 127.0.0.53, as
+  systemd-resolved's stub listens): the resolver forwards the name outside. So does a connect
+  to systemd-resolved's own socket (``/run/systemd/resolve/...``, what glibc's ``nss-resolve``
+  uses for host names).
+* Other AF_UNIX sockets, AF_NETLINK (the kernel) and AF_UNSPEC (dissolving a UDP association)
+  are local; any other family counts, so that nothing unknown passes silently. Not told apart:
+  a host lookup through nscd's socket (``/var/run/nscd/socket``), which also answers user
+  lookups (``getpwuid``) that many libraries make.
 
 ``python -m tests.network_trace -- COMMAND ...`` runs a command so and prints the count (see
 ``benchmarks/trace_connects.sh``).
@@ -33,12 +39,15 @@ from pathlib import Path
 
 TRACED_CALLS = ("connect", "bind")
 LOCAL_FAMILIES = frozenset({"AF_UNIX", "AF_LOCAL", "AF_NETLINK", "AF_UNSPEC"})
+DNS_PORT = 53
+RESOLVER_SOCKETS = ("/run/systemd/resolve/",)  # a host name asked here is asked outside
 
 # "1234  connect(7, {sa_family=AF_INET, sin_port=htons(80), sin_addr=inet_addr("1.2.3.4")}, 16)"
 # (also the first half of a call another thread interrupted: "... <unfinished ...>")
 _CALL = re.compile(r"^(?P<pid>\d+)\s+(?P<call>connect|bind)\(\d+, \{sa_family=(?P<family>\w+)")
 _PORT = re.compile(r"sin6?_port=htons\((?P<port>\d+)\)")
 _HOST = re.compile(r'(?:inet_addr\("(?P<v4>[^"]+)"\)|inet_pton\(AF_INET6?, "(?P<v6>[^"]+)")')
+_PATH = re.compile(r'sun_path=@?"(?P<path>[^"]*)"')
 
 
 @dataclass(frozen=True)
@@ -48,16 +57,20 @@ class SocketCall:
     pid: int
     call: str  # "connect" or "bind"
     family: str  # "AF_INET", "AF_INET6", "AF_UNIX", ...
-    host: str | None  # the IP for AF_INET/AF_INET6
+    host: str | None  # the IP for AF_INET/AF_INET6, the path for AF_UNIX
     port: int | None
     line: str  # the strace line, for the failure message
 
     @property
     def leaves_loopback(self) -> bool:
+        if self.family in ("AF_UNIX", "AF_LOCAL"):
+            return self.call == "connect" and (self.host or "").startswith(RESOLVER_SOCKETS)
         if self.family in LOCAL_FAMILIES:
             return False
         if self.family not in ("AF_INET", "AF_INET6") or self.host is None:
             return True  # an unknown family, or an address strace did not decode
+        if self.call == "connect" and self.port == DNS_PORT:
+            return True
         return not is_loopback(self.host)
 
 
@@ -79,12 +92,13 @@ def parse_strace(text: str) -> list[SocketCall]:
         match = _CALL.match(line)
         if match is None:
             continue
-        port, host = _PORT.search(line), _HOST.search(line)
+        port, host, path = _PORT.search(line), _HOST.search(line), _PATH.search(line)
+        address = host["v4"] or host["v6"] if host else path["path"] if path else None
         calls.append(SocketCall(
             pid=int(match["pid"]),
             call=match["call"],
             family=match["family"],
-            host=None if host is None else host["v4"] or host["v6"],
+            host=address,
             port=None if port is None else int(port["port"]),
             line=line,
         ))
@@ -115,7 +129,7 @@ def traced_command(argv: Sequence[str], log: Path) -> list[str]:
     strace = strace_executable()
     if strace is None:
         raise FileNotFoundError("strace is not installed (apt-get install strace)")
-    return [strace, "-f", "-qq", "--seccomp-bpf", "-e", f"trace={','.join(TRACED_CALLS)}",
+    return [strace, "-f", "-qq", "--seccomp-bpf", "-s", "256", "-e", f"trace={','.join(TRACED_CALLS)}",
             "-e", "signal=none", "-o", str(log), "--", *argv]
 
 
