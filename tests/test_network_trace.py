@@ -33,6 +33,7 @@ def test_a_grandchilds_short_connect_and_a_wide_bind_are_seen(tmp_path: Path) ->
     seen = {(c.call, c.host, c.port) for c in run.outside}
     assert seen == {("connect", "192.0.2.1", 9), ("bind", "0.0.0.0", 0)}, run.outside
     assert len({c.pid for c in run.outside}) == 2  # the grandchild's connect, the parent's bind
+    assert [c.is_control for c in run.outside if c.call == "connect"] == [True]
     loopback = [c for c in run.calls if c.host == "127.0.0.1"]
     assert {c.call for c in loopback} == {"bind", "connect"}
     assert not any(c.leaves_loopback for c in loopback)

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from tests.conftest import OnnxExport
 from tests.helpers import dev_dependency
-from tests.network_trace import require_strace, run_traced, strace_executable
+from tests.network_trace import require_strace, run_traced, strace_executable, traced_already
 
 WATCHED = """
 import json, socket, sys
@@ -100,7 +100,7 @@ def test_compiling_and_running_opens_no_outside_socket_and_no_telemetry(
     command = [sys.executable, "-c", WATCHED, folder]
     env = {**os.environ, "HOME": str(home)}
     traced = None
-    if strace_executable() is not None:
+    if strace_executable() is not None and not traced_already():
         traced = run_traced(command, tmp_path / "openvino.strace", env=env, timeout=300)
         out = traced.process
     else:
