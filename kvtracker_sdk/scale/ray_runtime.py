@@ -75,8 +75,7 @@ def ensure_ray(*, num_cpus: int | None = None) -> Any:
     return ray
 
 
-# ray.init in two threads at once is already an error in Ray; the lock keeps the swap of the
-# class attribute below from being undone by one thread while the other is still starting
+# two threads starting Ray at once must not restore each other's swap of the class attribute
 _START_LOCK = threading.Lock()
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from kvtracker_sdk.errors import MissingDependencyError
 from tests.helpers import PROJECT_ROOT, dev_dependency
 from tests.network_trace import require_strace, run_traced
 
@@ -75,3 +76,22 @@ def test_a_ray_session_connects_and_binds_only_to_loopback(tmp_path: Path) -> No
     assert len({c.pid for c in inet}) >= 3, [c.line for c in inet]
     assert [c.line for c in run.outside] == []
     assert [p for p in report["processes"] if "dashboard/dashboard.py" in p] == []
+
+
+def test_the_dashboard_is_kept_out_only_while_ray_starts(monkeypatch: pytest.MonkeyPatch) -> None:
+    ray = dev_dependency("ray")
+    from ray._private import node as ray_node
+
+    from kvtracker_sdk.scale.ray_runtime import _without_api_server
+
+    original = ray_node.Node.start_api_server
+    with _without_api_server(ray):
+        replaced = ray_node.Node.start_api_server
+        assert replaced is not original
+        assert replaced(object(), include_dashboard=False, raise_on_failure=False) is None
+    assert ray_node.Node.start_api_server is original  # restored: other clusters are untouched
+    # a Ray that starts its dashboard some other way is refused, not started with the probe
+    monkeypatch.delattr(ray_node.Node, "start_api_server")
+    with pytest.raises(MissingDependencyError, match="start Ray yourself"), \
+            _without_api_server(ray):
+        pass
