@@ -8,6 +8,7 @@ absence is a failure (CI must never go green by skipping the parity tests).
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,14 +42,16 @@ def tum_dir() -> Path:
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread() -> Iterator[None]:
     """Run torch single-threaded in tests: the test models are tiny, and on a shared 2-core
-    machine intra-op threads cost more in synchronisation than they win (measured 5-30x slower)."""
+    machine intra-op threads cost more in synchronisation than they win (measured 5-30x slower).
+    ``KVTRACKER_TEST_TORCH_THREADS=N`` runs them on N threads instead (the thread variants of
+    ``tests/cpu_variants.py``: a reduction split over threads rounds differently)."""
     try:
         import torch
     except ImportError:  # a layer-0-only environment: nothing to configure
         yield
         return
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(os.environ.get("KVTRACKER_TEST_TORCH_THREADS", "1")))
     yield
     torch.set_num_threads(threads)
 

@@ -92,6 +92,11 @@ def _stack_masks(masks: Sequence[np.ndarray | None], size: tuple[int, int]) -> n
     return np.stack([m if m is not None else np.ones(size, dtype=bool) for m in masks])
 
 
+def _anchors_world(request: RebuildRequest) -> bool:
+    """Whether this pass fixes a new world frame (at its first frame) rather than joining one."""
+    return request.previous is None or not request.keep
+
+
 def _gauge(
     request: RebuildRequest, raw_poses: np.ndarray, raw_points: np.ndarray, align: bool,
     metric_scale: float | None = None,
@@ -99,7 +104,7 @@ def _gauge(
     """``metric_scale``: metres per raw unit from sensor depth; when given it sets the scale."""
     if not align:
         return Sim3.identity()  # debug: stay in the pass's raw frame
-    if request.previous is None or not request.keep:
+    if _anchors_world(request):
         return anchor_gauge(raw_poses[0], 1.0 if metric_scale is None else metric_scale)
     shared = len(request.keep)
     scale = metric_scale if metric_scale is not None else depth_scale(
@@ -194,6 +199,12 @@ def build_map(
         world = replace(world, scale_source=ScaleSource.DEPTH,
                         scale_uncertainty=depth_fit.relative_uncertainty)
     world_poses = gauge.apply_to_pose(result.poses)
+    if align_gauge and _anchors_world(request):
+        # keyframe 0's camera IS the world frame: its pose is the identity by definition.
+        # Computed as gauge(raw pose) it is R0^T R0, the identity only to how orthonormal the
+        # network's float32 R0 is and how the CPU's kernels rounded it (~1e-6, differing
+        # between instruction sets and thread counts), so it is set, not computed.
+        world_poses[0] = np.eye(4)
     keyframes = tuple(
         Keyframe(
             keyframe_id=source.keyframe_id,

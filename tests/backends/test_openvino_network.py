@@ -9,7 +9,9 @@ and running, the hosts of the process's open inet sockets (``psutil``: native co
 host must be loopback, no child process, no telemetry call, nothing written to ``HOME`` (where
 telemetry keeps its client id). A negative control, in the same process after the watch is
 read, connects a UDP socket to 192.0.2.1 (no packet leaves: UDP connect only sets the peer) and
-must be seen.
+must be seen. The same child runs under ``tests/network_trace.py`` (strace: every connect() and
+bind() of the process and any child, native code's included): the control is the one call that
+leaves loopback.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from pathlib import Path
 
 from tests.conftest import OnnxExport
 from tests.helpers import dev_dependency
+from tests.network_trace import require_strace, run_traced, strace_executable, traced_already
 
 WATCHED = """
 import json, socket, sys
@@ -68,7 +71,10 @@ backend.track(images[2], mapped.cache)
 connections = psutil.Process().net_connections("inet")
 sockets = [c.laddr.ip for c in connections] + [c.raddr.ip for c in connections if c.raddr]
 watched = {"events": events[:], "telemetry": telemetry[:], "sockets": sockets}
-socket.socket(socket.AF_INET, socket.SOCK_DGRAM).connect(("192.0.2.1", 9))  # the control
+try:  # the control; without a route (a loopback-only namespace) it fails after being seen
+    socket.socket(socket.AF_INET, socket.SOCK_DGRAM).connect(("192.0.2.1", 9))
+except OSError:
+    pass
 print(json.dumps({"watched": watched, "control": events[len(watched["events"]):]}))
 """
 
@@ -92,17 +98,25 @@ def test_compiling_and_running_opens_no_outside_socket_and_no_telemetry(
     dev_dependency("openvino")
     dev_dependency("psutil")
     folder = str(onnx_exports("pi3").folder)
-    out = subprocess.run(
-        [sys.executable, "-c", WATCHED, folder],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "HOME": str(tmp_path)},  # where telemetry would keep its client id
-    )
+    home = tmp_path / "home"  # where telemetry would keep its client id
+    home.mkdir()
+    command = [sys.executable, "-c", WATCHED, folder]
+    env = {**os.environ, "HOME": str(home)}
+    traced = None
+    if strace_executable() is not None and not traced_already():
+        traced = run_traced(command, tmp_path / "openvino.strace", env=env, timeout=300)
+        out = traced.process
+    else:
+        out = subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
     assert out.returncode == 0, out.stderr
     recorded = json.loads(out.stdout.strip().splitlines()[-1])
     watched = recorded["watched"]
     assert [e for e in watched["events"] if not is_loopback(e[1])] == []
     assert [host for host in watched["sockets"] if not is_loopback(host)] == []
-    assert watched["telemetry"] == [] and list(tmp_path.iterdir()) == []
+    assert watched["telemetry"] == [] and list(home.iterdir()) == []
     assert recorded["control"] == [["socket.connect", "192.0.2.1"]]  # the watch sees a send
+    if traced is None:
+        require_strace()  # the audit checks passed; the trace could not run (skip, or fail in CI)
+        return
+    assert [(c.call, c.host, c.port) for c in traced.outside] == [("connect", "192.0.2.1", 9)], [
+        c.line for c in traced.outside]

@@ -31,7 +31,10 @@ def test_first_frame_bootstraps_the_map_at_the_identity(backend: SimulatedBacken
             ("MAPPING", "TRACKING", "BOOTSTRAP", 0),
         ]
         assert first.state is TrackingState.TRACKING and first.pose_valid and first.keyframe_id == 0
-        np.testing.assert_allclose(first.pose.T_world_cam, np.eye(4), atol=1e-9)
+        # exact, not close: keyframe 0's camera is the world frame by definition (the raw pose
+        # inverted and applied to itself is the identity only to rounding, ~1e-16 here)
+        np.testing.assert_array_equal(first.pose.T_world_cam, np.eye(4))
+        np.testing.assert_array_equal(tracker.keyframe_map.keyframes[0].T_world_cam, np.eye(4))
         assert tracker.get_pose() is first.pose
         assert first.map_generation == 1 and {"preprocess", "map", "total"} <= set(first.timings_ms)
         assert session.maps[0].cause == "bootstrap" and session.keyframes[0].keyframe_id == 0

@@ -43,7 +43,9 @@ def test_real_frames_run_end_to_end(frames: list[tuple[float, np.ndarray]], weig
         backend = tracker.backend
     assert moves[:2] == [("INIT", "MAPPING", "BOOTSTRAP"), ("MAPPING", "TRACKING", "BOOTSTRAP")]
     assert results[0].state is TrackingState.TRACKING and results[0].keyframe_id == 0
-    np.testing.assert_allclose(results[0].pose.T_world_cam, np.eye(4), atol=1e-6)
+    # exact on any CPU: the first keyframe's camera is the world frame by definition (computed
+    # from the network's float32 pose it was the identity to ~1e-6, differently per ISA)
+    np.testing.assert_array_equal(results[0].pose.T_world_cam, np.eye(4))
     # random small weights give arbitrary but well-formed outputs: every frame yields a rigid pose
     assert all(r.pose is not None and r.pose.is_rigid(atol=1e-4) for r in results)
     assert [r.frame_index for r in results if r.is_keyframe] == [0, 5, 10, 15]
