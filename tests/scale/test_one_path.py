@@ -1,0 +1,147 @@
+"""Every entry point tracks the same way: for one config and one backend, ``kvtracker track``,
+``eval-many`` on the serial, local and Ray engines and the documented Python loop write the same
+trajectory file, byte for byte — on the shared TUM sequence (its published, distorted camera)
+and on two simulated recordings (one with a camera file), for the PyTorch and ONNX backends.
+``eval-many`` also runs an OpenVINO config, and each row of its table equals the single run.
+
+Cost: one manifest of 3 short sequences x 3 backends, each engine once (one pool worker, one
+Ray actor on the session's Ray), and 9 single runs of the CLI and 9 of the loop.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from kvtracker_sdk.config import TrackerConfig
+from kvtracker_sdk.eval.report import evaluate_trajectories
+from kvtracker_sdk.io.sources import open_source
+from kvtracker_sdk.io.trajectory import read_trajectory, read_tum, write_tum
+from kvtracker_sdk.runs import FrameSelection, open_backend, open_input, open_tracker, track
+from kvtracker_sdk.scale import EvalManyResult, load_manifest, run_many
+from tests.cli.invoke import invoke
+from tests.helpers import dev_dependency, shared_path
+from tests.scale.recordings import write_camera, write_image_folder, write_tum_layout
+
+FRAMES = 6  # per sequence: enough for three mapping passes at a keyframe every 2 frames
+CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 2}}
+ENGINES = ("serial", "local", "ray")
+
+
+class Plan:
+    """The sequences, the backends and what every entry point wrote."""
+
+    def __init__(self, folder: Path, onnx_folder: Path) -> None:
+        self.folder = folder
+        tum = shared_path("data", "tum_fr2_desk")
+        sim_a = write_tum_layout(folder / "sim_a", FRAMES, seed=3)
+        sim_b, sim_b_truth = write_image_folder(folder / "sim_b", FRAMES, seed=4)
+        camera = write_camera(folder / "sim_a_camera.json")
+        # name -> (input, ground truth or None, camera file or None)
+        self.sequences: dict[str, tuple[Path, Path | None, Path | None]] = {
+            "tum": (tum, None, None),  # TUM's published fr2 camera: distortion
+            "sim_a": (sim_a, None, camera),
+            "sim_b": (sim_b, sim_b_truth, None),
+        }
+        weights = shared_path("golden", "pi3", "weights.safetensors")
+        # config name -> (kind, weights)
+        self.backends = {"torch": ("torch", weights), "onnx": ("onnx", onnx_folder),
+                         "openvino": ("openvino", onnx_folder)}
+
+    def manifest(self) -> Path:
+        sequences = []
+        for name, (source, truth, camera) in self.sequences.items():
+            entry: dict[str, Any] = {"name": name, "source": str(source), "frames": FRAMES}
+            if truth is not None:
+                entry["ground_truth"] = str(truth)
+            if camera is not None:
+                entry["camera"] = str(camera)
+            sequences.append(entry)
+        configs = {name: {**CONFIG, "backend": {"kind": kind, "weights": str(weights)}}
+                   for name, (kind, weights) in self.backends.items()}
+        path = self.folder / "manifest.json"
+        path.write_text(json.dumps({"configs": configs, "sequences": sequences}))
+        return path
+
+
+@pytest.fixture(scope="module")
+def plan(tmp_path_factory: pytest.TempPathFactory,
+         onnx_exports: Callable[[str], Any]) -> Plan:
+    dev_dependency("openvino")
+    return Plan(tmp_path_factory.mktemp("one_path"), onnx_exports("pi3").folder)
+
+
+@pytest.fixture(scope="module")
+def engines(plan: Plan, ray_session: Any) -> dict[str, EvalManyResult]:
+    manifest = load_manifest(plan.manifest())
+    return {engine: run_many(manifest, plan.folder / engine, engine=engine, workers=1)
+            for engine in ENGINES}
+
+
+def _cli_run(plan: Plan, sequence: str, config: str) -> Path:
+    source, truth, camera = plan.sequences[sequence]
+    kind, weights = plan.backends[config]
+    out = plan.folder / "cli" / sequence / config
+    config_file = plan.folder / "config.json"
+    config_file.write_text(json.dumps(CONFIG))
+    extra = ["--camera", camera] if camera else []
+    result = invoke("-q", "track", source, "--out", out, "--backend", kind, "--weights", weights,
+                    "--threads", 1, "--config", config_file, "--max-frames", FRAMES, *extra)
+    assert result.exit_code == 0, result.output
+    return out / "trajectory.txt"
+
+
+def _python_loop(plan: Plan, sequence: str, config: str) -> Path:
+    """The loop of docs/backends.md, as an app writes it."""
+    source, truth, camera = plan.sequences[sequence]
+    kind, weights = plan.backends[config]
+    backend = open_backend(kind, weights, threads=1)
+    run_input = open_input(source, camera=camera, ground_truth=truth)
+    with open_tracker(TrackerConfig.from_dict(CONFIG), backend, run_input) as tracker:
+        record = track(tracker, run_input, selection=FrameSelection(max_frames=FRAMES))
+    backend.close()
+    path = plan.folder / "loop" / sequence / f"{config}.txt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_tum(path, record.trajectory())
+    return path
+
+
+@pytest.mark.parametrize("config", ["torch", "onnx"])
+@pytest.mark.parametrize("sequence", ["tum", "sim_a", "sim_b"])
+def test_every_entry_point_writes_the_same_trajectory(
+    plan: Plan, engines: dict[str, EvalManyResult], sequence: str, config: str
+) -> None:
+    reference = _cli_run(plan, sequence, config).read_bytes()
+    assert reference.count(b"\n") >= FRAMES - 1  # the header and the valid poses
+    for engine in ENGINES:
+        written = plan.folder / engine / sequence / config / "trajectory.txt"
+        assert written.read_bytes() == reference, f"eval-many --engine {engine}"
+    assert _python_loop(plan, sequence, config).read_bytes() == reference, "the Python loop"
+
+
+@pytest.mark.parametrize("sequence", ["tum", "sim_a", "sim_b"])
+def test_the_table_has_a_row_per_runtime_equal_to_single_runs(
+    plan: Plan, engines: dict[str, EvalManyResult], sequence: str
+) -> None:
+    rows = {r.config: r for r in engines["serial"].results if r.sequence == sequence}
+    assert {name: row.backend for name, row in rows.items()} == {
+        "torch": "torch/float32", "onnx": "onnx/float32", "openvino": "openvino/float32"}
+    source, truth_file, _camera = plan.sequences[sequence]
+    truth = read_trajectory(truth_file) if truth_file else open_source(source).ground_truth()
+    assert truth is not None
+    for config, row in rows.items():
+        trajectory = _cli_run(plan, sequence, config)
+        run = json.loads((trajectory.parent / "run.json").read_text())
+        single = evaluate_trajectories(read_tum(trajectory), truth)
+        assert row.error is None and row.frames == run["frames"] == FRAMES
+        assert row.valid_poses == run["valid_poses"] and row.keyframes == run["map"]["keyframes"]
+        # exact: the same poses, scored by the same function
+        assert row.ate_rmse_m == single.ate.translation.rmse
+        assert row.rpe_translation_rmse_m == single.rpe.translation.rmse
+        assert run["backend"]["runtime"] == config
+    for engine in ("local", "ray"):
+        assert engines[engine].metrics() == engines["serial"].metrics()
