@@ -20,8 +20,9 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import InputError
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import project_to_rotation
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
+from kvtracker_sdk.io.intrinsics import estimate_intrinsics
 
 __all__ = ["PosedImage", "Reconstruction", "reconstruction_from_map", "rigid"]
 
@@ -33,7 +34,7 @@ class PosedImage:
     name: str  # file name the writers use, e.g. "kf_0003.png"
     T_world_cam: np.ndarray  # float64 [4, 4]
     image: np.ndarray
-    intrinsics: PinholeIntrinsics
+    intrinsics: Camera
     timestamp: float | None = None
 
 
@@ -56,7 +57,7 @@ class Reconstruction:
 
 def reconstruction_from_map(
     keyframe_map: KeyframeMap,
-    intrinsics: PinholeIntrinsics | None = None,
+    intrinsics: Camera | None = None,
     *,
     min_confidence: float = 0.5,
     stride: int = 1,
@@ -127,7 +128,7 @@ def rigid(T_world_cam: np.ndarray) -> np.ndarray:
 
 
 def _pinhole_residuals(
-    local_points: np.ndarray, intrinsics: PinholeIntrinsics, uv: np.ndarray
+    local_points: np.ndarray, intrinsics: Camera, uv: np.ndarray
 ) -> np.ndarray:
     """Pixel distance between where the model's points project and the pixels they belong to."""
     if not len(uv):

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.io.reconstruction import (
     PosedImage,
     Reconstruction,
@@ -52,7 +52,7 @@ def load_reconstruction(
     run_or_map: str | os.PathLike[str],
     *,
     all_frames: bool = False,
-    intrinsics: PinholeIntrinsics | None = None,
+    intrinsics: Camera | None = None,
     min_confidence: float = 0.5,
     stride: int = 1,
 ) -> Reconstruction:
@@ -76,7 +76,7 @@ def load_reconstruction(
     return reconstruction.with_images(_tracked_frames(run, camera, keyframe_map.metadata))
 
 
-def _tracked_frames(run: Path, camera: PinholeIntrinsics, metadata: Any) -> list[PosedImage]:
+def _tracked_frames(run: Path, camera: Camera, metadata: Any) -> list[PosedImage]:
     from kvtracker_sdk.io.sources import open_source
 
     document = _run_document(run)
