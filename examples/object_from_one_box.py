@@ -71,12 +71,12 @@ def simulated(frames: int) -> tuple[Backend, Frames, RenderedMaskSegmenter]:
 
 def real(weights: str, source: str, frames: int) -> tuple[Backend, Frames]:
     """The PyTorch backend and the frames of a video, folder or TUM sequence."""
-    from kvtracker_sdk import TorchBackend
     from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend
 
     stream = ((f.image, f.timestamp, None) for f, _ in zip(open_source(source), range(frames),
                                                            strict=False))
-    return TorchBackend.from_pretrained(weights), stream
+    return open_backend("torch", weights), stream
 
 
 def main(argv: list[str] | None = None) -> Outcome:

@@ -54,14 +54,14 @@ def real(weights: str, source: str, masks: str, frames: int) -> tuple[Backend, F
     """The PyTorch backend, frames of a sequence and the mask images of a folder (same order)."""
     import cv2
 
-    from kvtracker_sdk import TorchBackend
     from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend
 
     mask_files = sorted(p for p in Path(masks).iterdir() if p.is_file())
     pairs = zip(open_source(source), mask_files, range(frames), strict=False)
     stream = ((f.image, f.timestamp, cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0, None)
               for f, m, _ in pairs)
-    return TorchBackend.from_pretrained(weights), stream
+    return open_backend("torch", weights), stream
 
 
 def main(argv: list[str] | None = None) -> Outcome:

@@ -101,13 +101,13 @@ def simulated(start: int, stop: int) -> tuple[Backend, Iterator[View]]:
 
 def real(weights: str, source: str, bbox: str, start: int, stop: int) -> tuple[Backend, Iterator[View]]:
     """The PyTorch backend and frames ``start:stop`` of a video or a sequence, one box for all."""
-    from kvtracker_sdk import TorchBackend
     from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend
 
     box = tuple(float(v) for v in bbox.split(","))
     frames = (f for f in open_source(source) if start <= f.frame_index < stop)
     views = (View(f.image, f.timestamp, bbox=box) for f in frames)  # type: ignore[arg-type]
-    return TorchBackend.from_pretrained(weights), views
+    return open_backend("torch", weights), views
 
 
 def main(argv: list[str] | None = None) -> Outcome:

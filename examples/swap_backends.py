@@ -51,21 +51,20 @@ def simulated(frames: int) -> Setup:
 def real(weights: str, source: str, frames: int) -> Setup:
     """PyTorch fp32 first; ONNX Runtime second if installed (else PyTorch bf16); a simulated
     backend stands for "another model" to show the refusal."""
-    import torch
-
-    from kvtracker_sdk import SimulatedBackend, TorchBackend
+    from kvtracker_sdk import SimulatedBackend
     from kvtracker_sdk.backends.simulated_scene import orbit
+    from kvtracker_sdk.errors import MissingDependencyError
     from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend
 
     def second() -> Backend:
         try:
-            from kvtracker_sdk.export_onnx import onnx_backend
-        except ImportError:  # the [onnx] extra (or the ONNX backend) is not installed
+            return open_backend("onnx", weights)  # exported once into a cache folder
+        except MissingDependencyError:  # the [onnx] extra is not installed
             print("ONNX backend unavailable: swapping to PyTorch bfloat16 instead")
-            return TorchBackend.from_pretrained(weights, dtype=torch.bfloat16)
-        return onnx_backend(weights)  # exported once into a cache folder
+            return open_backend("torch", weights, dtype="bfloat16")
 
-    first = TorchBackend.from_pretrained(weights)
+    first = open_backend("torch", weights)
     stranger = SimulatedBackend(orbit(10))
     opened = open_source(source)
     stream = ((f.image, f.timestamp) for f in opened)
