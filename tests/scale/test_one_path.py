@@ -160,7 +160,7 @@ def test_the_table_has_a_row_per_runtime_equal_to_single_runs(
             single.ate.translation.rmse, single.rpe.translation.rmse, single.rpe.rotation_deg.rmse)
         run = json.loads((_cli_run(plan, sequence, config).parent / "run.json").read_text())
         assert run["backend"]["runtime"] == config and run["valid_poses"] == row.valid_poses
-        if run["evaluation"] and "ate" in run["evaluation"]:  # the CLI scored it too (the input ships ground truth)
+        if run["evaluation"] and "ate" in run["evaluation"]:  # the CLI scored it too
             assert run["evaluation"]["ate"]["translation"]["rmse"] == row.ate_rmse_m
     for engine in ("local", "ray"):
         assert engines[engine].metrics() == engines["serial"].metrics()
