@@ -162,10 +162,11 @@ def test_the_table_has_a_row_per_runtime_equal_to_single_runs(
         assert row.valid_poses == len(record.trajectory()) and row.keyframes == record.num_keyframes
         assert (row.ate_rmse_m, row.rpe_translation_rmse_m, row.rpe_rotation_rmse_deg) == (
             single.ate.translation.rmse, single.rpe.translation.rmse, single.rpe.rotation_deg.rmse)
-        run = json.loads((_cli_run(plan, sequence, config).parent / "run.json").read_text())
-        assert run["backend"]["runtime"] == config and run["valid_poses"] == row.valid_poses
-        if run["evaluation"] and "ate" in run["evaluation"]:  # the CLI scored it too
-            assert run["evaluation"]["ate"]["translation"]["rmse"] == row.ate_rmse_m
+        if (sequence, config) in plan.cli_runs:  # torch and ONNX: the CLI ran it above
+            run = json.loads((plan.cli_runs[sequence, config].parent / "run.json").read_text())
+            assert run["backend"]["runtime"] == config and run["valid_poses"] == row.valid_poses
+            if run["evaluation"] and "ate" in run["evaluation"]:  # the CLI scored it too
+                assert run["evaluation"]["ate"]["translation"]["rmse"] == row.ate_rmse_m
     serial = [m for m in engines["serial"].metrics() if m["config"] != "openvino"]
     for engine in ("local", "ray"):
         assert engines[engine].metrics() == serial
