@@ -12,12 +12,13 @@ of the CLI and of the loop per sequence and backend.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.eval.report import evaluate_trajectories
 from kvtracker_sdk.io.sources import open_source
@@ -62,6 +63,13 @@ class Plan:
         # (sequence, config) -> what a single run gave, made once for both tests
         self.cli_runs: dict[tuple[str, str], Path] = {}
         self.loop_runs: dict[tuple[str, str], tuple[Path, RunRecord]] = {}
+        self.opened: dict[str, Backend] = {}  # the loop's backends, opened once per runtime
+
+    def backend(self, config: str) -> Backend:
+        if config not in self.opened:
+            kind, weights = self.backends[config]
+            self.opened[config] = open_backend(kind, weights, threads=1)
+        return self.opened[config]
 
     def manifest(self, configs: tuple[str, ...]) -> Path:
         sequences = []
@@ -81,9 +89,12 @@ class Plan:
 
 @pytest.fixture(scope="module")
 def plan(tmp_path_factory: pytest.TempPathFactory,
-         onnx_exports: Callable[[str], Any]) -> Plan:
+         onnx_exports: Callable[[str], Any]) -> Iterator[Plan]:
     dev_dependency("openvino")
-    return Plan(tmp_path_factory.mktemp("one_path"), onnx_exports("pi3").folder)
+    made = Plan(tmp_path_factory.mktemp("one_path"), onnx_exports("pi3").folder)
+    yield made
+    for backend in made.opened.values():
+        backend.close()
 
 
 @pytest.fixture(scope="module")
@@ -117,12 +128,10 @@ def _python_loop(plan: Plan, sequence: str, config: str) -> tuple[Path, RunRecor
     if (sequence, config) in plan.loop_runs:
         return plan.loop_runs[sequence, config]
     source, truth, camera = plan.sequences[sequence]
-    kind, weights = plan.backends[config]
-    backend = open_backend(kind, weights, threads=1)
+    backend = plan.backend(config)  # open_backend(kind, weights, threads=1), once per runtime
     run_input = open_input(source, camera=camera, ground_truth=truth)
     with open_tracker(TrackerConfig.from_dict(CONFIG), backend, run_input) as tracker:
         record = track(tracker, run_input, selection=FrameSelection(max_frames=FRAMES))
-    backend.close()
     path = plan.folder / "loop" / sequence / f"{config}.txt"
     path.parent.mkdir(parents=True, exist_ok=True)
     write_tum(path, record.trajectory())
