@@ -206,6 +206,11 @@ class ObjectConfig(_Section):
     crop_margin_px: int = Field(default=50, ge=0)
     """Dilation of the crop box, in input-image pixels (KV-Tracker paper / design doc: 50 px)."""
 
+    search_frames: int = Field(default=90, ge=1)
+    """A loaded object map is relocalised against the whole frame (no mask or box needed); after
+    this many frames without finding the object (3 s at 30 Hz) the reason becomes
+    ``OBJECT_NOT_FOUND``: the app should give the object's mask or box again."""
+
 
 class ThreadingConfig(_Section):
     """Where map rebuilds run."""

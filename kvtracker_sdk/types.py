@@ -59,6 +59,9 @@ class StateReason(str, enum.Enum):
     RESET = "RESET"  # reset() was called
     TIMEOUT = "TIMEOUT"  # relocalisation timed out and the policy acted
     NEW_MAP = "NEW_MAP"  # relocalisation timed out and a new map was started
+    # object mode: a loaded object map's object was not found in the whole frame for
+    # `object.search_frames` frames; give its mask or box with a frame that shows it
+    OBJECT_NOT_FOUND = "OBJECT_NOT_FOUND"
 
 
 class HeadSet(str, enum.Enum):
@@ -231,11 +234,14 @@ class ObjectRegion:
 class ObjectFrame:
     """Object mode's anchor for AR content, in the tracker's world frame.
 
-    ``T_world_object``: origin at the object centre (the mean of the map's fused object points),
-    axes those of keyframe 0's camera (OpenCV: x right, y down, z forward as keyframe 0 saw the
-    object). ``extent``: an oriented box of the fused points, its pose in *object* coordinates
-    (``extent.T_ref_box`` is ``T_object_box``). ``num_points``: fused points it was fitted to;
-    ``map_generation``: the map it comes from (it moves a little with every rebuild).
+    ``T_world_object``: for an object standing on a support plane (a desk), origin at the centre
+    of its extent and z along ``up``, the plane's normal (world, unit; x is keyframe 0's camera x
+    laid onto the plane); for a floating object (no plane found, ``up`` None), origin at the
+    mean of the map's fused object points and the axes of keyframe 0's camera (OpenCV: x right,
+    y down, z forward as keyframe 0 saw the object). ``extent``: an oriented box of the fused
+    points, its pose in *object* coordinates (``extent.T_ref_box`` is ``T_object_box``).
+    ``num_points``: fused points it was fitted to; ``map_generation``: the map it comes from (it
+    moves a little with every rebuild).
     Per frame, ``FrameResult.T_cam_object = inv(T_world_cam) @ T_world_object``.
     """
 
@@ -243,11 +249,16 @@ class ObjectFrame:
     extent: OrientedBox
     num_points: int
     map_generation: int
+    up: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         matrix = np.array(self.T_world_object, dtype=np.float64, copy=True)
         matrix.setflags(write=False)
         object.__setattr__(self, "T_world_object", matrix)
+        if self.up is not None:
+            up = np.array(self.up, dtype=np.float64, copy=True)
+            up.setflags(write=False)
+            object.__setattr__(self, "up", up)
 
 
 def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:

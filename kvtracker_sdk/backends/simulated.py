@@ -3,7 +3,9 @@ for demos without weights.
 
 It behaves like Pi3 where the tracker can tell: every mapping pass returns its poses, local points
 and depths in its own random Sim(3) frame and scale; poses carry noise; confidence can be dropped
-over chosen frame ranges (loss) or in mapping passes only (keyframe rejection). It returns a real
+over chosen frame ranges (loss) or in mapping passes only (keyframe rejection), and, with
+``object_in_view``, on tracked frames that do not show the whole object unmasked (as a network
+cannot place a camera against an object's map without seeing the object). It returns a real
 ``KVCache`` — the tracker exercises the same cache code as with a network — whose tokens carry
 what a stateless backend needs to track against it: the pass's hidden Sim(3) and the frame index
 of each keyframe.
@@ -82,6 +84,7 @@ class SimulatedBackend:
         map_confidence_drops: Sequence[tuple[int, int]] = (),
         seed: int = 0,
         camera_size: tuple[int, int] | None = None,
+        object_in_view: bool = False,
     ) -> None:
         if min(translation_noise_m, rotation_noise_deg, pass_jitter) < 0:
             raise ConfigError("noise levels must be >= 0")
@@ -99,6 +102,9 @@ class SimulatedBackend:
         self.seed = int(seed)
         # (H, W) of the rendered frames: model-resolution rays then follow their resize exactly
         self.camera_size = None if camera_size is None else (int(camera_size[0]), int(camera_size[1]))
+        # like a network tracking against an object's map: confident only when the (unmasked)
+        # image shows the whole object
+        self.object_in_view = bool(object_in_view)
         # a frame's error is fixed (drawn once per frame index); passes add jitter on top
         rng = np.random.default_rng((self.seed, 0))
         self._frame_noise = rng.standard_normal((len(ground_truth), 6))
@@ -161,7 +167,8 @@ class SimulatedBackend:
         image = self._check_images(image[None])[0]
         frame = self._decode(image)
         hidden = self._hidden_frame(cache)
-        lost = _in_segments(frame, self.loss_segments)
+        lost = _in_segments(frame, self.loss_segments) or (
+            self.object_in_view and not self._shows_object(image, frame))
         delta = self._frame_noise[[frame]] * (_LOSS_NOISE_FACTOR if lost else 1.0)
         pose = hidden.apply_to_pose(self._noisy_poses([frame], delta)[0])
         level = self.lost_confidence if lost else self.confidence
@@ -230,6 +237,8 @@ class SimulatedBackend:
             self.translation_noise_m, self.rotation_noise_rad, self.pass_jitter, self.confidence,
             self.loss_segments, self.lost_confidence, self.map_confidence_drops, self.seed,
             *(() if self.camera_size is None else (self.camera_size,)),
+            *self._solids(),
+            *(("object_in_view",) if self.object_in_view else ()),
         )).encode())
         return BackendInfo(
             backend="simulated",
@@ -242,6 +251,26 @@ class SimulatedBackend:
             layout=_LAYOUT,
             dtype="float64",
         )
+
+    def _shows_object(self, image: np.ndarray, frame: int) -> bool:
+        """Whether ``image`` (model resolution, black where masked) shows the whole object: its
+        true silhouette box lies inside the image and at least half of it is unmasked."""
+        size = (int(image.shape[0]), int(image.shape[1]))
+        box = self.scene.object_box(self.ground_truth.poses[frame], size, self.model_K(size))
+        if box is None or box[0] <= 0 or box[1] <= 0 or box[2] >= size[1] or box[3] >= size[0]:
+            return False
+        window = image[int(box[1]) : int(np.ceil(box[3])), int(box[0]) : int(np.ceil(box[2]))]
+        return bool(window.any(axis=-1).mean() >= 0.5)
+
+    def _solids(self) -> tuple[object, ...]:
+        """The scene's cuboids and planes as plain values (none for the sphere in a room: its
+        fingerprint stays what it was)."""
+        scene = self.scene
+        shapes = [scene.object_shape, *scene.others]
+        solids = tuple(
+            (s.centre.tolist(), s.half_extents.tolist(), s.yaw) for s in shapes if s is not None
+        ) + tuple((p.point.tolist(), p.normal.tolist()) for p in scene.planes)
+        return (solids,) if solids else ()
 
     def _check_images(self, images: np.ndarray) -> np.ndarray:
         if (

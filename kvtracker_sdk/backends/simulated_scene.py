@@ -5,7 +5,9 @@ depth in, and a camera whose images carry their frame index.
   trajectory resampled to 30 Hz.
 * ``SimulatedScene``: an axis-aligned room around the trajectory plus one sphere (the "object",
   placed where the cameras look). Depth per pixel comes from ray casting, so depth maps, masks and
-  object points are geometrically consistent with the poses.
+  object points are geometrically consistent with the poses. ``SimulatedScene.desk`` and
+  ``SimulatedScene.wall`` put a cuboid object on a table plane beside a second cuboid of similar
+  size (and, for ``wall``, against a wall plane): the case every AR object app starts with.
 * Frame code: image pixels carry the frame index in their red and green channels
   (R = 16 + index // 224, G = 16 + index % 224; black, the object-mode background, never encodes
   a frame). A flat code survives resizing, cropping and masking; blue holds an optional texture.
@@ -30,7 +32,9 @@ from kvtracker_sdk.errors import BackendError, TrajectoryError
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
 
 __all__ = [
+    "Cuboid",
     "GroundTruth",
+    "Plane",
     "SimulatedCamera",
     "SimulatedFrame",
     "SimulatedScene",
@@ -150,13 +154,105 @@ def pixel_rays(size: tuple[int, int], K: np.ndarray | None = None) -> np.ndarray
 
 
 @dataclass(frozen=True)
+class Cuboid:
+    """A solid box standing upright in the world (z up): ``centre`` [3] and ``half_extents`` [3]
+    in metres, turned by ``yaw`` radians about world z."""
+
+    centre: np.ndarray
+    half_extents: np.ndarray
+    yaw: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("centre", "half_extents"):
+            value = np.array(getattr(self, name), dtype=np.float64, copy=True)
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """3x3 R_world_box."""
+        c, s = np.cos(self.yaw), np.sin(self.yaw)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    @property
+    def size(self) -> np.ndarray:
+        """Edge lengths [3] along the box's own axes."""
+        return 2.0 * self.half_extents
+
+    @property
+    def radius(self) -> float:
+        """Radius of the bounding sphere (half the diagonal)."""
+        return float(np.linalg.norm(self.half_extents))
+
+    def corners(self) -> np.ndarray:
+        """[8, 3] world corners."""
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+        return (signs * self.half_extents) @ self.rotation.T + self.centre
+
+    def hit(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """[...] ray parameter of the first hit of rays ``origin + t * directions`` (world),
+        inf where a ray misses or starts inside (slab method in the box's own frame)."""
+        R = self.rotation
+        o = R.T @ (origin - self.centre)
+        d = directions @ R  # world -> box frame, per ray
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-self.half_extents - o) / d
+            t2 = (self.half_extents - o) / d
+        t1 = np.where(np.isnan(t1), -np.inf, t1)
+        t2 = np.where(np.isnan(t2), np.inf, t2)
+        near = np.minimum(t1, t2).max(axis=-1)
+        far = np.maximum(t1, t2).min(axis=-1)
+        return np.where((near <= far) & (near > 0), near, np.inf)
+
+    def surface_distance(self, points: np.ndarray) -> np.ndarray:
+        """[N] unsigned distance (metres) of world ``points`` [N, 3] to the box's surface."""
+        local = (np.asarray(points, dtype=np.float64) - self.centre) @ self.rotation
+        q = np.abs(local) - self.half_extents
+        outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+        inside = np.minimum(q.max(axis=1), 0.0)
+        return np.abs(outside + inside)
+
+
+@dataclass(frozen=True)
+class Plane:
+    """An infinite solid half-space: points ``x`` with ``normal . (x - point) < 0`` are inside
+    (``normal`` [3], unit, points out of the solid: a table top's up, a wall's face)."""
+
+    point: np.ndarray
+    normal: np.ndarray
+
+    def __post_init__(self) -> None:
+        normal = np.array(self.normal, dtype=np.float64)
+        normal /= np.linalg.norm(normal)
+        for name, value in (("point", np.array(self.point, dtype=np.float64)), ("normal", normal)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    def hit(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """[...] ray parameter where rays from ``origin`` (outside the solid) enter it; inf where
+        they run away from it."""
+        towards = directions @ self.normal
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (self.point - origin) @ self.normal / towards
+        return np.where((towards < 0) & (t > 0), t, np.inf)
+
+
+@dataclass(frozen=True)
 class SimulatedScene:
-    """A box room [room_min, room_max] and a sphere (centre, radius), all in metres (world)."""
+    """A box room [room_min, room_max] and a sphere (centre, radius), all in metres (world).
+
+    With ``object_shape`` the object is that cuboid instead (``object_centre`` and
+    ``object_radius`` then give its centre and bounding sphere); ``others`` are more cuboids (not
+    the object) and ``planes`` solid half-spaces (a table, a wall) inside the room.
+    """
 
     room_min: np.ndarray
     room_max: np.ndarray
     object_centre: np.ndarray
     object_radius: float
+    object_shape: Cuboid | None = None
+    others: tuple[Cuboid, ...] = ()
+    planes: tuple[Plane, ...] = ()
 
     @classmethod
     def around(
@@ -172,20 +268,57 @@ class SimulatedScene:
         target = np.linalg.solve(projector.sum(0), np.einsum("nij,nj->i", projector, centres))
         return cls(centres.min(0) - margin, centres.max(0) + margin, target, radius)
 
+    @classmethod
+    def desk(cls, poses: np.ndarray, *, wall: bool = False, margin: float = 2.0) -> SimulatedScene:
+        """An object on a desk where the cameras look (world z up): a 12 x 9 x 16 cm cuboid
+        standing on a table plane, and a second cuboid of similar size (10 x 10 x 13 cm) beside
+        it, 10 cm or more away. ``wall``: a wall plane 2 cm behind the object (on its +y side;
+        cameras stay on the -y side) and the second object beside it along the wall."""
+        around = cls.around(poses, margin=margin)
+        centre = around.object_centre
+        half = np.array([0.06, 0.045, 0.08])
+        table_z = centre[2] - half[2]
+        other_half = np.array([0.05, 0.05, 0.065])
+        # bounding circles 7.5 cm and 7.1 cm in radius + a 10 cm gap: never closer than 10 cm
+        spacing = float(np.hypot(*half[:2]) + np.hypot(*other_half[:2]) + 0.10)
+        direction = np.array([1.0, 0.0]) if wall else np.array([0.5, np.sqrt(3.0) / 2.0])
+        other_centre = np.array([*(centre[:2] + spacing * direction), table_z + other_half[2]])
+        planes = [Plane(np.array([0.0, 0.0, table_z]), np.array([0.0, 0.0, 1.0]))]
+        if wall:
+            planes.append(Plane(np.array([0.0, centre[1] + half[1] + 0.02, 0.0]),
+                                np.array([0.0, -1.0, 0.0])))
+        shape = Cuboid(centre, half, 0.0 if wall else 0.3)
+        return cls(around.room_min, around.room_max, centre, shape.radius, shape,
+                   (Cuboid(other_centre, other_half, 0.0 if wall else -0.4),), tuple(planes))
+
+    def object_surface_distance(self, points: np.ndarray) -> np.ndarray:
+        """[N] distance (metres) of world ``points`` [N, 3] to the object's true surface."""
+        points = np.asarray(points, dtype=np.float64)
+        if self.object_shape is not None:
+            return self.object_shape.surface_distance(points)
+        return np.abs(np.linalg.norm(points - self.object_centre, axis=1) - self.object_radius)
+
     def depth(self, T_world_cam: np.ndarray, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(depth [H, W] metres along camera z, object mask [H, W]) by ray casting ``rays``."""
         R, c = T_world_cam[:3, :3], T_world_cam[:3, 3]
         directions = rays @ R.T  # world-frame ray directions, |d| >= 1
         with np.errstate(divide="ignore", invalid="ignore"):
             exits = np.where(directions > 0, self.room_max - c, self.room_min - c) / directions
-        room = np.min(np.where(np.isfinite(exits) & (exits > 0), exits, np.inf), axis=-1)
-        offset = c - self.object_centre
-        b = directions @ offset
-        a = np.einsum("...i,...i->...", directions, directions)
-        disc = b * b - a * (offset @ offset - self.object_radius**2)
-        hit = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0.0))) / a, np.inf)
-        on_object = (disc >= 0) & (hit > 0) & (hit < room)
-        return np.where(on_object, hit, room), on_object
+        nearest = np.min(np.where(np.isfinite(exits) & (exits > 0), exits, np.inf), axis=-1)
+        solids: tuple[Cuboid | Plane, ...] = (*self.others, *self.planes)
+        for solid in solids:
+            nearest = np.minimum(nearest, solid.hit(c, directions))
+        if self.object_shape is not None:
+            hit = self.object_shape.hit(c, directions)
+            on_object = hit < nearest
+        else:
+            offset = c - self.object_centre
+            b = directions @ offset
+            a = np.einsum("...i,...i->...", directions, directions)
+            disc = b * b - a * (offset @ offset - self.object_radius**2)
+            hit = np.where(disc >= 0, (-b - np.sqrt(np.maximum(disc, 0.0))) / a, np.inf)
+            on_object = (disc >= 0) & (hit > 0) & (hit < nearest)
+        return np.where(on_object, hit, nearest), on_object
 
     def object_box(
         self, T_world_cam: np.ndarray, size: tuple[int, int], K: np.ndarray | None = None
@@ -202,6 +335,8 @@ class SimulatedScene:
         height, width = size
         K = camera_matrix(size) if K is None else np.asarray(K, dtype=np.float64)
         R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+        if self.object_shape is not None:
+            return self._cuboid_box(self.object_shape, R, t, size, K)
         c = R.T @ (self.object_centre - t)
         r = self.object_radius
         if c[2] <= r:
@@ -215,6 +350,21 @@ class SimulatedScene:
         (x0, x1), (y0, y1) = bounds
         box = (max(0.0, float(x0)), max(0.0, float(y0)), min(float(width), float(x1)),
                min(float(height), float(y1)))
+        return box if box[0] < box[2] and box[1] < box[3] else None
+
+    @staticmethod
+    def _cuboid_box(
+        shape: Cuboid, R: np.ndarray, t: np.ndarray, size: tuple[int, int], K: np.ndarray
+    ) -> tuple[float, float, float, float] | None:
+        """A convex solid's silhouette box is its projected corners' box (exact, no ray cast)."""
+        local = (shape.corners() - t) @ R
+        if local[:, 2].min() <= 1e-6:
+            return None
+        uv = local @ K.T
+        uv = uv[:, :2] / uv[:, 2:] + 0.5  # pixel centres -> box coordinates
+        height, width = size
+        box = (max(0.0, float(uv[:, 0].min())), max(0.0, float(uv[:, 1].min())),
+               min(float(width), float(uv[:, 0].max())), min(float(height), float(uv[:, 1].max())))
         return box if box[0] < box[2] and box[1] < box[3] else None
 
 

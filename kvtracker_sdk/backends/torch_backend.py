@@ -21,7 +21,11 @@ pass) against a cache while holding ``cache.lock``; the cache's content is only 
 
 The backend owns the model it is given: it casts it to ``dtype`` (final heads stay fp32) and moves
 it to ``device``; with ``compile`` its ``forward_track`` is replaced by a compiled one
-(``backends/torch_compile.py``). ``threads`` sets torch's intra-op threads, process-wide (None:
+(``backends/torch_compile.py``). ``cuda_graph`` (``True`` or ``GraphOptions(max_keyframes=...)``)
+replays the tracking step from CUDA graphs over static cache buffers
+(``backends/cuda_graph_step.py``; eager off CUDA). An fp32 backend on CUDA turns cuDNN's TF32 off,
+process-wide (fp32 convolutions in TF32 moved DA3's depth off the golden vectors). ``threads``
+sets torch's intra-op threads, process-wide (None:
 chosen from the usable cores and the load, ``kvtracker_sdk/threads.py``); ``backend.threads``
 reports the choice. ``attention="products"`` computes the tracking step's attention over the cache
 as two bf16 products instead of SDPA (``models/layers/cached_attention.py``). The weights
@@ -40,6 +44,7 @@ import torch
 from torch import nn
 
 from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult
+from kvtracker_sdk.backends.cuda_graph_step import GraphOptions, GraphReport, GraphTracking
 from kvtracker_sdk.backends.frame_checks import check_cache, check_frames, check_masks
 from kvtracker_sdk.backends.torch_compile import CompiledTracking, CompileOptions, CompileReport
 from kvtracker_sdk.cache.kv_cache import KVCache
@@ -101,6 +106,14 @@ def _compile_options(compile: bool | CompileOptions) -> CompileOptions | None:
     raise ConfigError(f"compile must be a bool or CompileOptions, got {compile!r}")
 
 
+def _graph_options(cuda_graph: bool | GraphOptions) -> GraphOptions | None:
+    if isinstance(cuda_graph, GraphOptions):
+        return cuda_graph
+    if isinstance(cuda_graph, bool):
+        return GraphOptions() if cuda_graph else None
+    raise ConfigError(f"cuda_graph must be a bool or GraphOptions, got {cuda_graph!r}")
+
+
 def _accelerations(device: torch.device) -> tuple[str, ...]:
     """Fast paths in use, detected once: fused SDPA kernels and the CPU vector ISA."""
     if device.type == "cuda":
@@ -130,8 +143,12 @@ class TorchBackend:
         threads: int | None = None,
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
+        cuda_graph: bool | GraphOptions = False,
     ) -> None:
         compute_dtype = _parse_dtype(dtype)
+        graph_options = _graph_options(cuda_graph)
+        if graph_options is not None and compile is not False:
+            raise ConfigError("choose compile or cuda_graph, not both")
         self._threads = ThreadSettings.resolve(threads, torch.get_num_threads())  # before any work
         compile_options = _compile_options(compile)
         if attention not in CACHED_KERNELS:
@@ -146,6 +163,13 @@ class TorchBackend:
         except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
             raise BackendError(f"cannot move the model to {target}: {exc}") from exc
         use_cached_kernel(model, attention)
+        if target.type == "cuda" and compute_dtype == torch.float32 and (
+            torch.backends.cudnn.allow_tf32
+        ):
+            # process-wide: PyTorch lets cuDNN run fp32 convolutions in TF32 by default, which
+            # moved DA3's depth 2e-3 off the golden vectors (tolerance 1e-4); fp32 means fp32
+            torch.backends.cudnn.allow_tf32 = False
+            _log.info("cuDNN TF32 turned off for an fp32 backend on CUDA (process-wide)")
         torch.set_num_threads(self._threads.threads)
         _log.info("torch threads", settings=self._threads.describe())
         self._compiled: CompiledTracking | None = None
@@ -153,6 +177,10 @@ class TorchBackend:
             # the family's track calls model.forward_track: the instance attribute shadows it
             self._compiled = CompiledTracking(model, compile_options)
             cast(Any, model).forward_track = self._compiled
+        self._graphs: GraphTracking | None = None
+        if graph_options is not None:
+            self._graphs = GraphTracking(model, family.cache_layout(model), graph_options)
+            cast(Any, model).forward_track = self._graphs
         self._family = family
         # the resolved device ("cuda" -> "cuda:0"), so that it compares equal to tensors' devices
         self._device = next(model.parameters()).device
@@ -169,7 +197,8 @@ class TorchBackend:
             device=str(self._device),
             accelerations=_accelerations(self._device)
             + (() if attention == "sdpa" else (f"cached-attention-{attention}",))
-            + (() if compile_options is None else (compile_options.describe(),)),
+            + (() if compile_options is None else (compile_options.describe(),))
+            + (() if graph_options is None else (graph_options.describe(),)),
         )
 
     @classmethod
@@ -184,6 +213,7 @@ class TorchBackend:
         threads: int | None = None,
         compile: bool | CompileOptions = False,
         attention: str = "sdpa",
+        cuda_graph: bool | GraphOptions = False,
     ) -> TorchBackend:
         """Load a model of either family: a name (``"pi3"``, ``"da3-small"``, ``"da3-base"``,
         ...), a ``.safetensors`` file, a folder or a hub repo id; the family comes from the
@@ -199,6 +229,7 @@ class TorchBackend:
             threads=threads,
             compile=compile,
             attention=attention,
+            cuda_graph=cuda_graph,
         )
 
     # ------------------------------------------------------------------ Backend protocol
@@ -215,6 +246,11 @@ class TorchBackend:
     def compile_report(self) -> CompileReport | None:
         """The compiled tracking step's status and first-call time (None: not compiled)."""
         return None if self._compiled is None else self._compiled.report
+
+    @property
+    def graph_report(self) -> GraphReport | None:
+        """The CUDA-graph step's captures, replays and eager calls (None: not enabled)."""
+        return None if self._graphs is None else self._graphs.report
 
     def map(self, images: np.ndarray, masks: np.ndarray | None = None) -> MapResult:
         """Full attention over keyframes uint8 [N, H, W, 3]; the cache lists keyframes 0..N-1."""
@@ -252,10 +288,11 @@ class TorchBackend:
     ) -> list[TrackResult]:
         """Track independent frames uint8 [B, H, W, 3] against ``cache`` in one pass."""
         model = self._live_model()
-        frames = self._to_tensor(images)
-        check_cache(cache, self._info, frames.shape[-2], frames.shape[-1])
+        images = check_frames(images, self._info.patch_size)
+        check_cache(cache, self._info, images.shape[1], images.shape[2])
         start = time.perf_counter()
         with cache.lock, torch.no_grad():
+            frames = self._upload(images)
             output = self._family.track(model, frames, cache, heads)
         elapsed_ms = (time.perf_counter() - start) * 1e3
         timings = {"track": elapsed_ms / frames.shape[0], "track_batch": elapsed_ms}
@@ -273,9 +310,14 @@ class TorchBackend:
 
     def _to_tensor(self, images: np.ndarray) -> torch.Tensor:
         """uint8 [N, H, W, 3] -> float [N, 3, H, W] in [0, 1] on the backend's device."""
-        images = check_frames(images, self._info.patch_size)
+        return self._upload(check_frames(images, self._info.patch_size))
+
+    def _upload(self, images: np.ndarray) -> torch.Tensor:
+        """Checked frames (``check_frames``) -> float [N, 3, H, W] in [0, 1] on the device."""
         # torch wants writable memory: read-only arrays (e.g. a map's stored keyframes) are copied
         writable = images if images.flags.writeable else images.copy()
+        # a plain copy: page-locked staging gained nothing measurable against a step on a GPU
+        # (benchmarks/gpu_check.py, section upload)
         tensor = torch.from_numpy(np.ascontiguousarray(writable)).to(self._device)
         if images.dtype == np.float32:  # already in [0, 1] (check_frames)
             return tensor.permute(0, 3, 1, 2).contiguous()

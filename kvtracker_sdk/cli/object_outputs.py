@@ -1,8 +1,9 @@
 """``object.json``: what an object-mode run knows about the object, for anchoring content later.
 
-* ``object_frame``: ``T_world_object`` (origin at the object centre, axes of keyframe 0) and the
-  extent (an oriented box of the fused object points: ``T_object_box``, ``half_extents``), in the
-  map's units (monocular: no metric scale);
+* ``object_frame``: ``T_world_object`` (origin at the object centre; z along ``up``, the support
+  plane's normal, for an object standing on one, else the axes of keyframe 0) and the extent (an
+  oriented box of the fused object points: ``T_object_box``, ``half_extents``), in the map's
+  units (monocular: no metric scale);
 * ``frames``: per frame, the region (``source``: given / segmented / predicted / held; ``box`` and
   ``context_box`` in pixels, x1/y1 exclusive) and ``T_cam_object`` (null without a valid pose).
 """
@@ -40,9 +41,11 @@ def object_document(tracker: Tracker, results: list[FrameResult]) -> dict[str, A
                    "half_extents": frame.extent.half_extents.tolist()},
         "num_points": frame.num_points,
         "map_generation": frame.map_generation,
+        "up": None if frame.up is None else frame.up.tolist(),
     }  # fmt: skip
     return {
-        "convention": "T_world_object: origin at the object centre, axes of keyframe 0 (OpenCV); "
+        "convention": "T_world_object: origin at the object centre; z = up (the support plane's "
+                      "normal) when up is set, else axes of keyframe 0 (OpenCV); "
                       "T_cam_object = inv(T_world_cam) @ T_world_object; boxes (x0, y0, x1, y1) "
                       "in input pixels, x1/y1 exclusive",
         "object_frame": anchor,

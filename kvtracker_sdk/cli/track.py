@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -15,10 +15,14 @@ from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.progress import busy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
-from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.errors import ConfigError, MaskError
 from kvtracker_sdk.runs.backends import DEFAULT_WEIGHTS, BackendKind, ComputeDtype, open_backend
 from kvtracker_sdk.runs.frames import FrameSelection, MaskFolder, parse_bbox, read_frames
 from kvtracker_sdk.runs.run_loop import BadFramePolicy
+from kvtracker_sdk.types import StateReason
+
+if TYPE_CHECKING:
+    from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["register", "track"]
 
@@ -123,7 +127,8 @@ def track(
     run_input = open_input(input_path, camera=camera, fps=fps, realtime=realtime)
     source, intrinsics = run_input.source, run_input.camera
     mask_folder = MaskFolder(masks) if masks is not None else None
-    _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box)
+    _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box,
+                         loaded=load_map is not None)
     options = OutputOptions(
         out, rerun=rerun, min_confidence=min_confidence, voxel_size=voxel_size,
         ground_truth=run_input.ground_truth, save_map=save_map,
@@ -147,6 +152,7 @@ def track(
                 run_session(state, tracker, frames, total=selection.count(len(source)),
                             description=description, options=outs.around(options),
                             on_bad_frame=on_bad_frame)
+            _check_object_found(tracker, load_map)
     finally:
         chosen.close()
 
@@ -166,12 +172,25 @@ def _effective_mode(
         return config.mode
 
 
+def _check_object_found(tracker: Tracker, load_map: Path | None) -> None:
+    """After the run (outputs written): MaskError, telling what to pass, when a loaded object
+    map's object was searched for in vain (reason OBJECT_NOT_FOUND at the end)."""
+    if tracker.reason is StateReason.OBJECT_NOT_FOUND:
+        raise MaskError(
+            f"the object of {load_map} was not found in the whole frame "
+            f"({tracker.config.object.search_frames} frames or more): pass --bbox x0,y0,x1,y1 "
+            "--bbox-once (its box on the first frame, which must show it) or --masks DIR"
+        )
+
+
 def _check_object_inputs(
-    mode: TrackingMode, masks: Path | None, box: tuple[float, float, float, float] | None
+    mode: TrackingMode, masks: Path | None, box: tuple[float, float, float, float] | None,
+    *, loaded: bool = False,
 ) -> None:
-    """Object mode needs masks or a box; scene mode tracks the whole frame, so a box there would
-    only crop the map's point cloud without saying so."""
-    if mode is TrackingMode.OBJECT and masks is None and box is None:
+    """Object mode needs masks or a box, unless a loaded object map finds the object itself;
+    scene mode tracks the whole frame, so a box there would only crop the map's point cloud
+    without saying so."""
+    if mode is TrackingMode.OBJECT and masks is None and box is None and not loaded:
         raise ConfigError("object mode needs the object: pass --masks DIR or --bbox x0,y0,x1,y1")
     if mode is TrackingMode.SCENE and box is not None:
         raise ConfigError(

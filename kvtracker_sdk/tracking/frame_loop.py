@@ -88,10 +88,14 @@ class FrameLoop:
         return self.snapshot.reason
 
     # ------------------------------------------------------------------ one frame
-    def step(self, frame: PreparedFrame, index: int, timings: dict[str, float]) -> Step:
-        """Process frame ``index`` and publish the new snapshot."""
+    def step(
+        self, frame: PreparedFrame, index: int, timings: dict[str, float], *,
+        keyframe_allowed: bool = True,
+    ) -> Step:
+        """Process frame ``index`` and publish the new snapshot; ``keyframe_allowed`` False:
+        the frame may not become a keyframe (its mask is not the object's)."""
         self.collect(index, timings)
-        step = self._process(frame, index, timings)
+        step = self._process(frame, index, timings, keyframe_allowed)
         tracked = self.snapshot.pose
         if step.valid and step.pose is not None:
             tracked = TrackedPose(step.pose, index, frame.timestamp)
@@ -104,7 +108,9 @@ class FrameLoop:
     def generation(self) -> int:
         return self.keeper.status().generation
 
-    def _process(self, frame: PreparedFrame, index: int, timings: dict[str, float]) -> Step:
+    def _process(
+        self, frame: PreparedFrame, index: int, timings: dict[str, float], keyframe_allowed: bool
+    ) -> Step:
         kf_map = self.keeper.map
         if kf_map is None:
             return self._bootstrap(frame, index, timings)
@@ -123,7 +129,7 @@ class FrameLoop:
                 return self._bootstrap(frame, index, timings)
             return Step(None, False, confidence)
         valid = self.state is _S.TRACKING and verdict.confident
-        if valid and self.keeper.wants_keyframe(pose.T_world_cam, index):
+        if valid and keyframe_allowed and self.keeper.wants_keyframe(pose.T_world_cam, index):
             keyframe_id = self.keeper.propose(self.backend, frame, index, pose.T_world_cam)
             outcome = self.collect(index, timings) if keyframe_id is not None else None
             if (

@@ -15,6 +15,10 @@ network or estimated from its points):
   Without a trusted pose (loss, relocalisation, no map yet) or when the object is out of view or
   the intrinsics are unknown, the last region is kept (``HELD``); once the tracker relocalises it
   is predicted again.
+* **search** (a map loaded from a file, no pose yet): no region is known, so the frame is tracked
+  unmasked — the whole frame is where the object can be — and may not become a keyframe; once
+  the tracker relocalises, the region is predicted as above. ``object.search_frames`` frames
+  without finding it set the reason ``OBJECT_NOT_FOUND`` (``OBJECT_NOT_FOUND_HINT``).
 
 The region's mask is the projected points splatted on a grid whose cell matches their spacing,
 closed and hole-filled (a silhouette, not a depth test: points on the far side of the object
@@ -38,7 +42,19 @@ from kvtracker_sdk.tracking.object_model import ObjectModelCache
 from kvtracker_sdk.tracking.segmenter import Segmenter, ask_segmenter
 from kvtracker_sdk.types import ObjectFrame, ObjectRegion, RegionSource
 
-__all__ = ["RegionPropagator", "grown_mask", "project_region", "region_of_input", "splat_mask"]
+__all__ = [
+    "OBJECT_NOT_FOUND_HINT",
+    "RegionPropagator",
+    "grown_mask",
+    "project_region",
+    "region_of_input",
+    "splat_mask",
+]
+
+OBJECT_NOT_FOUND_HINT = (
+    "give the object's mask or box with a frame that shows it (push_frame(..., mask=...) or "
+    "bbox=(x0, y0, x1, y1); CLI: --bbox x0,y0,x1,y1 --bbox-once, or --masks DIR)"
+)
 
 _MIN_POINTS = 8  # fewer projected points than this: the object is out of view
 _MAX_CELL = 16
@@ -170,6 +186,12 @@ class RegionPropagator:
             if region is not None:
                 return region
         return None if self.last is None else self.last.held()
+
+    def search_mask(self, image: Any, *, min_side: int) -> np.ndarray:
+        """bool [H, W], all True: the whole frame, to track a frame with against a loaded object
+        map before any pose places the object (the object may be anywhere in view)."""
+        checked = check_image(image, min_side=min_side)
+        return np.ones(checked.shape[:2], dtype=bool)
 
     def input_mask(
         self, image: Any, index: int, kf_map: KeyframeMap | None, segmenter: Segmenter | None,

@@ -32,7 +32,10 @@ TRANSITIONS: MappingProxyType[tuple[TrackingState, TrackingState], frozenset[Sta
             (_S.TRACKING, _S.RELOCALIZING): frozenset({_R.LOW_CONFIDENCE, _R.MAP_LOADED}),
             (_S.RELOCALIZING, _S.TRACKING): frozenset({_R.RELOCALIZED}),
             # relocalisation timeout policies: stay (mark it), reset, start a new map
-            (_S.RELOCALIZING, _S.RELOCALIZING): frozenset({_R.TIMEOUT, _R.MAP_LOADED}),
+            # (and object mode: a loaded object map's object not found without a box)
+            (_S.RELOCALIZING, _S.RELOCALIZING): frozenset(
+                {_R.TIMEOUT, _R.MAP_LOADED, _R.OBJECT_NOT_FOUND}
+            ),
             (_S.RELOCALIZING, _S.INIT): frozenset({_R.TIMEOUT, _R.RESET}),
             (_S.RELOCALIZING, _S.MAPPING): frozenset({_R.NEW_MAP}),
             # a saved map installed by the persistence layer

@@ -48,7 +48,7 @@ from kvtracker_sdk.tracking.frame_input import FramePreparer, family_preprocessi
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
-from kvtracker_sdk.tracking.object_region import RegionPropagator
+from kvtracker_sdk.tracking.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
 from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
 from kvtracker_sdk.tracking.segmenter import Segmenter
 from kvtracker_sdk.types import (
@@ -120,6 +120,7 @@ class Tracker(EventSource):
         self._regions = RegionPropagator(margin=cfg.object.crop_margin_px,
                                          models=self._keeper.objects)
         self._segmenter = _checked_segmenter(segmenter)
+        self._searched = 0  # frames tracked unmasked in a row without finding the object
 
     @classmethod
     def from_pretrained(cls, weights: str | Path, **config: Any) -> Tracker:
@@ -205,8 +206,9 @@ class Tracker(EventSource):
     @property
     def object_frame(self) -> ObjectFrame | None:
         """Object mode: the object's frame and extent in the world frame (``ObjectFrame``: origin
-        at the object centre, axes of keyframe 0, an oriented box of the fused object points);
-        None in scene mode and before the map holds object points."""
+        at the object centre; z along ``up``, the support plane's normal, for an object standing
+        on one, else axes of keyframe 0; an oriented box of the fused object points); None in
+        scene mode and before the map holds object points."""
         if not self._object_mode:
             return None
         with self._call():
@@ -251,6 +253,7 @@ class Tracker(EventSource):
             self._loop.drop_map(_R.RESET)
             self._input_size = None
             self._regions.reset()
+            self._searched = 0
             if self.state is not _S.INIT:
                 self._loop.change(_S.INIT, _R.RESET, None)
 
@@ -264,6 +267,7 @@ class Tracker(EventSource):
                 )
             self._input_size = None
             self._regions.reset()
+            self._searched = 0
             self._loop.install_loaded(kf_map, rebuild=rebuild)
             if not self._keeper.extendable:
                 _log.warning(
@@ -402,7 +406,10 @@ class Tracker(EventSource):
         ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object in object mode:
         required with the first frame, optional afterwards (a frame without one is tracked with
         the region predicted from the map, or the ``Segmenter``'s mask; the result's ``region``
-        and ``T_cam_object`` say where the object is, ``tracking/object_region.py``). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
+        and ``T_cam_object`` say where the object is, ``tracking/object_region.py``); against a
+        loaded object map, not needed at all (the whole frame is searched until the tracker
+        relocalises; reason ``OBJECT_NOT_FOUND`` if it does not within
+        ``object.search_frames`` frames). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
         backend failed on this frame (``error``); ``pose_valid`` is False while relocalising or for
         a low-confidence frame. ``keyframe_id`` is set when the frame became a keyframe in this
         call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
@@ -416,10 +423,13 @@ class Tracker(EventSource):
             kf_map = self._keeper.map
             index = self._frames
             given = mask is not None or bbox is not None
-            segmented = None
+            segmented, searching = None, False
             if self._object_mode and not given:
                 mask, segmented = self._regions.input_mask(
                     image, index, kf_map, self._segmenter, min_side=self._preparer.patch_size)
+                if mask is None and kf_map is not None:  # a loaded map, no pose yet: search
+                    mask = self._regions.search_mask(image, min_side=self._preparer.patch_size)
+                    searching = True
             prompt_ms = _ms(start)  # predicting the region (and asking the segmenter)
             frame = self._preparer.prepare(
                 image, timestamp=timestamp, mask=mask, bbox=bbox,
@@ -432,7 +442,7 @@ class Tracker(EventSource):
             if segmented is not None:
                 timings["segment"] = prompt_ms
             self._loop.predicted_K = None
-            step = self._loop.step(frame, index, timings)
+            step = self._loop.step(frame, index, timings, keyframe_allowed=not searching)
             intrinsics, source = self._intrinsics.resolve(
                 frame, self._loop.predicted_K, self._keeper.map
             )
@@ -449,6 +459,7 @@ class Tracker(EventSource):
                     supplied=supplied)
                 timings["region"] = _ms(region_start) + (0.0 if segmented is not None
                                                           else prompt_ms)
+                self._count_search(searching and not step.valid, index)
             # counted once the frame went through: an unexpected error leaves both as they were
             self._frames, self._input_size = index + 1, frame.input_size
             timings["total"] = _ms(start)
@@ -464,6 +475,15 @@ class Tracker(EventSource):
         return result
 
     # ------------------------------------------------------------------ plumbing
+    def _count_search(self, missed: bool, index: int) -> None:
+        """Object mode: count frames searched in vain for a loaded map's object; the
+        ``object.search_frames``-th sets the reason OBJECT_NOT_FOUND (the app must point at it)."""
+        self._searched = self._searched + 1 if missed else 0
+        if self._searched == self._config.object.search_frames and self.state is _S.RELOCALIZING:
+            self._loop.change(_S.RELOCALIZING, _R.OBJECT_NOT_FOUND, index)
+            _log.warning("the loaded map's object was not found in the whole frame",
+                         frames=self._searched, hint=OBJECT_NOT_FOUND_HINT)
+
     def _map_camera(self) -> tuple[Camera, IntrinsicsSource] | None:
         """What a saved map records as its camera: the session's given one, else the last
         frame's reported intrinsics."""

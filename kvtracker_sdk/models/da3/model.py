@@ -38,6 +38,7 @@ disabled. A caller's ``torch.autocast`` likewise reaches only the backbone.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -86,6 +87,11 @@ class DA3MapOutput:
     keys: list[torch.Tensor]  # per global block [B, heads, N*T, head_dim], after k_norm + RoPE
     values: list[torch.Tensor]  # per global block [B, heads, N*T, head_dim]
     tokens_per_frame: int  # T = 1 + (H/14)*(W/14)
+
+
+def _channel_constants(values: Sequence[float], device: torch.device) -> torch.Tensor:
+    """float32 [len(values)] on ``device``, each filled there (no host-to-device copy)."""
+    return torch.stack([torch.full((), value, device=device) for value in values])
 
 
 class DepthAnything3(nn.Module):
@@ -197,9 +203,10 @@ class DepthAnything3(nn.Module):
         """[B, N, 3, H, W] in [0, 1] -> ImageNet-normalised, fp32 (the residual stream's dtype)."""
         if imgs.dim() != 5 or imgs.shape[2] != 3:
             raise ImageShapeError(f"expected images [B, N, 3, H, W], got shape {tuple(imgs.shape)}")
-        # constants, not buffers: DA3 checkpoints hold no normalisation tensors
-        mean = torch.tensor(IMAGENET_MEAN, device=imgs.device).view(1, 1, 3, 1, 1)
-        std = torch.tensor(IMAGENET_STD, device=imgs.device).view(1, 1, 3, 1, 1)
+        # constants, not buffers: DA3 checkpoints hold no normalisation tensors. Filled on the
+        # device, not copied from the host: a CUDA graph cannot capture a host-to-device copy
+        mean = _channel_constants(IMAGENET_MEAN, imgs.device).view(1, 1, 3, 1, 1)
+        std = _channel_constants(IMAGENET_STD, imgs.device).view(1, 1, 3, 1, 1)
         return (imgs.float() - mean) / std
 
     def _heads(

@@ -16,7 +16,9 @@ block, tokens [B, N*T, C]) -> tokens:
   the cache's scratch after the layer's cached tokens (``cache.layer_length``: a pruned cache's
   layers differ) and attends over the cached tokens plus its own
   (``Block.forward_track``). The cache is checked **before** it grows, and the mask of several
-  queries is built for their rows only ([F*T, past + F*T], not the S x S matrix);
+  queries is built for their rows only ([F*T, past + F*T], not the S x S matrix). A cache with
+  ``key_mask(layer)`` (bool per buffer token, True = may attend, or None for all: a
+  static-shape cache whose "length" is its fixed capacity) masks the tokens it does not hold;
 - ``PastInputsStep``: the exported tracking graphs' step, one frame reading each layer's past
   K/V from graph inputs by slicing (``Block.forward_past``; ONNX cannot write in place).
 """
@@ -136,12 +138,26 @@ class CacheTrackingStep:
             else keyframe_query_mask(past, frames, tokens_per_frame, queries_only=True, device=device)
             for past in set(self.past)
         }
+        # a static-shape cache (backends/cuda_graph_step.py) holds garbage between its content
+        # and its fixed scratch: it says per layer which of its tokens may be attended to
+        key_mask = getattr(cache, "key_mask", None)
+        self.layer_masks: list[torch.Tensor | None] | None = None
+        if key_mask is not None:
+            own = frames * tokens_per_frame
+            self.layer_masks = []
+            for ordinal, past in enumerate(self.past):
+                mask, layer_mask = self.masks[past], key_mask(ordinal)  # None: every token
+                if layer_mask is not None:
+                    valid = layer_mask[: past + own].unsqueeze(0)  # bool [1, past + own]
+                    mask = valid if mask is None else mask & valid
+                self.layer_masks.append(mask)
 
     def __call__(self, ordinal: int, block: Block, x: torch.Tensor) -> torch.Tensor:
         key_buffer, value_buffer = self.cache.buffers(ordinal)
         past = self.past[ordinal]
+        mask = self.masks[past] if self.layer_masks is None else self.layer_masks[ordinal]
         return block.forward_track(
-            x, key_buffer, value_buffer, past, rope=self.rope, attn_mask=self.masks[past]
+            x, key_buffer, value_buffer, past, rope=self.rope, attn_mask=mask
         )
 
 

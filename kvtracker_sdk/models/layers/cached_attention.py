@@ -42,7 +42,8 @@ def cached_attention(
     kernel: str = "sdpa",
 ) -> torch.Tensor:
     """softmax(q kᵀ / √d) v: ``q`` [B, heads, L, d], ``keys``/``values`` [B, heads, S, d],
-    ``attn_mask`` bool [L, S] (True = may attend; every row must allow a key) -> [B, heads, L, d]."""
+    ``attn_mask`` bool [L, S] or [1, S] (True = may attend; every row must allow a key)
+    -> [B, heads, L, d]."""
     if kernel == "sdpa":
         return F.scaled_dot_product_attention(q, keys, values, attn_mask=attn_mask)
     if kernel != "products":
@@ -53,8 +54,9 @@ def cached_attention(
     for start in range(0, q.shape[-2], _QUERY_CHUNK):
         stop = start + _QUERY_CHUNK
         scores = torch.matmul(q[..., start:stop, :] * scale, keys_t)  # [B, heads, chunk, S]
-        if attn_mask is not None:
-            scores = scores.masked_fill(~attn_mask[start:stop], float("-inf"))
+        if attn_mask is not None:  # [L, S], or [1, S] for every query alike
+            rows = attn_mask if attn_mask.shape[0] == 1 else attn_mask[start:stop]
+            scores = scores.masked_fill(~rows, float("-inf"))
         weights = torch.softmax(scores, dim=-1, dtype=torch.float32).to(values.dtype)
         out[..., start:stop, :] = torch.matmul(weights, values)
     return out

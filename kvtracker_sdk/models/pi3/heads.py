@@ -22,7 +22,13 @@ from torch import nn
 from kvtracker_sdk.models.layers.block import Block
 from kvtracker_sdk.models.layers.rope2d import RopeTable
 
-__all__ = ["CameraHead", "HeadDecoder", "PixelShuffleHead", "rotation_from_matrix9"]
+__all__ = [
+    "CameraHead",
+    "HeadDecoder",
+    "PixelShuffleHead",
+    "project_pose_rotations",
+    "rotation_from_matrix9",
+]
 
 
 class HeadDecoder(nn.Module):
@@ -97,6 +103,15 @@ def rotation_from_matrix9(raw: torch.Tensor) -> torch.Tensor:
     return (u * flip.unsqueeze(1)) @ vh
 
 
+def project_pose_rotations(poses: torch.Tensor) -> torch.Tensor:
+    """Poses [..., 4, 4] whose rotation block holds the camera head's raw 3x3 -> the same poses
+    with it projected by ``rotation_from_matrix9`` (what ``CameraHead`` does outside a graph)."""
+    projected = poses.clone()
+    raw = poses[..., :3, :3].reshape(-1, 9)
+    projected[..., :3, :3] = rotation_from_matrix9(raw).reshape(*poses.shape[:-2], 3, 3)
+    return projected
+
+
 class CameraHead(nn.Module):
     """Camera patch tokens [frames, h*w, dim] -> camera-to-world poses [frames, 4, 4] (fp32)."""
 
@@ -118,9 +133,15 @@ class CameraHead(nn.Module):
         return self.fc_rot(pooled), self.fc_t(pooled)
 
     def forward(self, tokens: torch.Tensor) -> torch.Tensor:
+        """-> poses [frames, 4, 4]. While a CUDA graph is being captured the rotation block holds
+        the raw 3x3 instead: the SVD checks its result on the host, which a graph cannot hold,
+        so the graph's runner projects it after each replay (``project_pose_rotations``)."""
         rotation_raw, translation = self.raw(tokens)
         pose = torch.zeros(tokens.shape[0], 4, 4, dtype=translation.dtype, device=translation.device)
-        pose[:, :3, :3] = rotation_from_matrix9(rotation_raw)
+        if tokens.is_cuda and torch.cuda.is_current_stream_capturing():
+            pose[:, :3, :3] = rotation_raw.reshape(-1, 3, 3)
+        else:
+            pose[:, :3, :3] = rotation_from_matrix9(rotation_raw)
         pose[:, :3, 3] = translation
         pose[:, 3, 3] = 1.0
         return pose

@@ -45,7 +45,12 @@ from kvtracker_sdk.models.layers.rope2d import RopeTable, grid_positions, rope_t
 from kvtracker_sdk.models.layers.vit_encoder import DinoViT
 from kvtracker_sdk.models.pi3.config import Pi3Config
 from kvtracker_sdk.models.pi3.decoder import Pi3Decoder
-from kvtracker_sdk.models.pi3.heads import CameraHead, HeadDecoder, PixelShuffleHead
+from kvtracker_sdk.models.pi3.heads import (
+    CameraHead,
+    HeadDecoder,
+    PixelShuffleHead,
+    project_pose_rotations,
+)
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["Pi3", "Pi3MapOutput", "Pi3Output"]
@@ -272,9 +277,25 @@ class Pi3(nn.Module):
             if point_tokens is not None:
                 raw = self.point_head(point_tokens.float(), grid_h, grid_w)
                 local_points = self.local_points(raw.reshape(batch, frames, height, width, 3))
-                rotation, translation = poses[..., :3, :3], poses[..., :3, 3]
-                points = (
-                    torch.einsum("bnij,bnhwj->bnhwi", rotation, local_points)
-                    + translation[:, :, None, None]
-                )
+                points = _world_points(poses, local_points)
         return Pi3Output(camera_poses=poses, conf=conf, local_points=local_points, points=points)
+
+    @staticmethod
+    def finish_captured_track(output: Pi3Output) -> Pi3Output:
+        """``forward_track``'s output as replayed from a CUDA graph -> the eager output: the
+        camera head leaves the SVD projection out of a graph (``CameraHead.forward``), so it and
+        the world points that depend on it are computed here."""
+        with torch.autocast(device_type=output.camera_poses.device.type, enabled=False):
+            poses = project_pose_rotations(output.camera_poses)
+            points = None
+            if output.local_points is not None:
+                points = _world_points(poses, output.local_points)
+        return Pi3Output(
+            camera_poses=poses, conf=output.conf, local_points=output.local_points, points=points
+        )
+
+
+def _world_points(poses: torch.Tensor, local_points: torch.Tensor) -> torch.Tensor:
+    """Camera-frame points [B, N, H, W, 3] -> world points under poses [B, N, 4, 4]."""
+    rotation, translation = poses[..., :3, :3], poses[..., :3, 3]
+    return torch.einsum("bnij,bnhwj->bnhwi", rotation, local_points) + translation[:, :, None, None]
