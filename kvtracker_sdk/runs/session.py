@@ -35,6 +35,7 @@ from kvtracker_sdk.runs.run_loop import (
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
     from kvtracker_sdk.tracking.events import StateChangeEvent
+    from kvtracker_sdk.tracking.segmenter import Segmenter
     from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["open_tracker", "track"]
@@ -50,17 +51,22 @@ def open_tracker(
     camera: Camera | None = None,
     load_map: str | os.PathLike[str] | None = None,
     rebuild: bool = False,
+    segmenter: Segmenter | None = None,
 ) -> Tracker:
     """A tracker over ``backend`` (which it does not close) with the camera of ``run_input``
     (``camera`` overrides it). With ``load_map`` it relocalises against that saved map;
-    ``config`` then changes the map's saved configuration (None keeps it)."""
+    ``config`` then changes the map's saved configuration (None keeps it). ``segmenter``:
+    object mode's optional ``Segmenter``."""
     from kvtracker_sdk.tracking.tracker import Tracker
 
     intrinsics = camera if camera is not None else (
         run_input.camera if run_input is not None else None)
     if load_map is None:
-        return Tracker(config, backend, camera=intrinsics)
-    return Tracker.from_map(load_map, backend, config, rebuild=rebuild, camera=intrinsics)
+        return Tracker(config, backend, camera=intrinsics, segmenter=segmenter)
+    tracker = Tracker.from_map(load_map, backend, config, rebuild=rebuild, camera=intrinsics)
+    if segmenter is not None:
+        tracker.set_segmenter(segmenter)
+    return tracker
 
 
 def track(
