@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kvtracker_sdk import Backend, Pose, Tracker, TrackerConfig, TrackingState
+from kvtracker_sdk import Backend, Pose, TrackerConfig, TrackingState
+from kvtracker_sdk.runs import TrackingInput, open_tracker
 from kvtracker_sdk.tracking.events import KeyframeEvent, StateChangeEvent
 
 HINTS = {
@@ -54,7 +55,7 @@ class App:
 Camera = Iterator[tuple[np.ndarray, float]]  # (RGB uint8 [H, W, 3], timestamp in seconds)
 
 
-def simulated_camera(frames: int) -> tuple[Backend, Camera]:
+def simulated_camera(frames: int) -> tuple[Backend, Camera, None]:
     """A simulated backend and its camera: 1 s of lost tracking two thirds of the way in."""
     from kvtracker_sdk import SimulatedBackend
     from kvtracker_sdk.backends.simulated_scene import orbit
@@ -62,17 +63,18 @@ def simulated_camera(frames: int) -> tuple[Backend, Camera]:
     lost = (2 * frames // 3, 2 * frames // 3 + 30)
     backend = SimulatedBackend(orbit(frames, radius=1.2), loss_segments=[lost])
     images = ((f.image, f.timestamp) for f in backend.frames((240, 320), textured=False))
-    return backend, images
+    return backend, images, None
 
 
-def real_camera(weights: str, source: str, frames: int) -> tuple[Backend, Camera]:
-    """The PyTorch backend and the frames of a video or an image sequence."""
-    from kvtracker_sdk import TorchBackend
-    from kvtracker_sdk.io.sources import open_source
+def real_camera(weights: str, source: str, frames: int) -> tuple[Backend, Camera, TrackingInput]:
+    """The PyTorch backend and the frames of a video or an image sequence, with their camera
+    (a dataset's published intrinsics: TUM frames are undistorted by the tracker)."""
+    from kvtracker_sdk.runs import open_backend, open_input
 
-    frames_iter = ((f.image, f.timestamp) for f in open_source(source))
+    run_input = open_input(source)
+    frames_iter = ((f.image, f.timestamp) for f in run_input.source)
     limited = (item for _, item in zip(range(frames), frames_iter, strict=False))
-    return TorchBackend.from_pretrained(weights), limited
+    return open_backend("torch", weights), limited, run_input
 
 
 def main(argv: list[str] | None = None) -> App:
@@ -85,14 +87,14 @@ def main(argv: list[str] | None = None) -> App:
         parser.error("--weights needs --source (the frames to track)")
 
     if args.weights:
-        backend, camera = real_camera(args.weights, args.source, args.frames)
+        backend, camera, run_input = real_camera(args.weights, args.source, args.frames)
         config = TrackerConfig(resolution=224, keyframing={"interval_frames": 5})
     else:
-        backend, camera = simulated_camera(args.frames)
+        backend, camera, run_input = simulated_camera(args.frames)
         config = TrackerConfig(keyframing={"interval_frames": 30})
 
     app = App()
-    with Tracker(config, backend) as tracker:
+    with open_tracker(config, backend, run_input) as tracker:  # the input's camera, if known
         tracker.on_state_change(app.on_state_change)
         tracker.on_keyframe(app.on_keyframe)
         for image, timestamp in camera:  # the app's camera loop

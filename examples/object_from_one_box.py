@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kvtracker_sdk import Backend, ObjectRegion, Tracker, TrackerConfig
+from kvtracker_sdk import Backend, Camera, ObjectRegion, TrackerConfig
+from kvtracker_sdk.runs import open_tracker
 
 # (RGB uint8 [H, W, 3], timestamp s, the true box (x0, y0, x1, y1) if known)
 Frames = Iterator[tuple[np.ndarray, float, tuple[float, float, float, float] | None]]
@@ -69,14 +70,15 @@ def simulated(frames: int) -> tuple[Backend, Frames, RenderedMaskSegmenter]:
     return backend, stream, RenderedMaskSegmenter(backend.camera(size, textured=False))
 
 
-def real(weights: str, source: str, frames: int) -> tuple[Backend, Frames]:
-    """The PyTorch backend and the frames of a video, folder or TUM sequence."""
-    from kvtracker_sdk import TorchBackend
-    from kvtracker_sdk.io.sources import open_source
+def real(weights: str, source: str, frames: int) -> tuple[Backend, Frames, Camera | None]:
+    """The PyTorch backend and the frames of a video, folder or TUM sequence, and the camera
+    its dataset publishes (if any)."""
+    from kvtracker_sdk.runs import open_backend, open_input
 
-    stream = ((f.image, f.timestamp, None) for f, _ in zip(open_source(source), range(frames),
+    run_input = open_input(source)
+    stream = ((f.image, f.timestamp, None) for f, _ in zip(run_input.source, range(frames),
                                                            strict=False))
-    return TorchBackend.from_pretrained(weights), stream
+    return open_backend("torch", weights), stream, run_input.camera
 
 
 def main(argv: list[str] | None = None) -> Outcome:
@@ -90,9 +92,9 @@ def main(argv: list[str] | None = None) -> Outcome:
     if args.weights and not (args.source and args.box):
         parser.error("--weights needs --source and --box")
 
-    segmenter = None
+    segmenter, camera = None, None
     if args.weights:
-        backend, frames = real(args.weights, args.source, args.frames)
+        backend, frames, camera = real(args.weights, args.source, args.frames)
         first_box = tuple(float(v) for v in args.box.split(","))
         config = TrackerConfig(mode="object", resolution=224)
     else:
@@ -104,7 +106,7 @@ def main(argv: list[str] | None = None) -> Outcome:
     sources: Counter[str] = Counter()
     ious: list[float] = []
     anchor_in_view = False
-    with Tracker(config, backend, segmenter=segmenter) as tracker:
+    with open_tracker(config, backend, camera=camera, segmenter=segmenter) as tracker:
         for index, (image, timestamp, truth) in enumerate(frames):
             box = (first_box or truth) if index == 0 else None  # one tap, then nothing
             result = tracker.push_frame(image, timestamp=timestamp, bbox=box)

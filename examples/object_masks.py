@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kvtracker_sdk import Backend, Tracker, TrackerConfig
+from kvtracker_sdk import Backend, Camera, TrackerConfig
+from kvtracker_sdk.runs import open_tracker
 
 # (RGB uint8 [H, W, 3], timestamp s, bool mask [H, W] or None, box (x0, y0, x1, y1) or None)
 Frames = Iterator[tuple[np.ndarray, float, np.ndarray | None, tuple[float, ...] | None]]
@@ -38,7 +39,7 @@ def box_of(mask: np.ndarray) -> tuple[float, float, float, float]:
     return float(cols.min()), float(rows.min()), float(cols.max() + 1), float(rows.max() + 1)
 
 
-def simulated(frames: int, use_box: bool) -> tuple[Backend, Frames]:
+def simulated(frames: int, use_box: bool) -> tuple[Backend, Frames, None]:
     """A camera orbiting a ball: ground-truth masks (as a segmenter would give) or their boxes."""
     from kvtracker_sdk import SimulatedBackend
     from kvtracker_sdk.backends.simulated_scene import orbit
@@ -46,22 +47,23 @@ def simulated(frames: int, use_box: bool) -> tuple[Backend, Frames]:
     backend = SimulatedBackend(orbit(frames, turns=frames / 360), seed=5)  # 1 degree per frame
     rendered = backend.frames((240, 320), textured=False, with_mask=True)
     if use_box:
-        return backend, ((f.image, f.timestamp, None, box_of(f.mask)) for f in rendered)
-    return backend, ((f.image, f.timestamp, f.mask, None) for f in rendered)
+        return backend, ((f.image, f.timestamp, None, box_of(f.mask)) for f in rendered), None
+    return backend, ((f.image, f.timestamp, f.mask, None) for f in rendered), None
 
 
-def real(weights: str, source: str, masks: str, frames: int) -> tuple[Backend, Frames]:
-    """The PyTorch backend, frames of a sequence and the mask images of a folder (same order)."""
+def real(weights: str, source: str, masks: str, frames: int) -> tuple[Backend, Frames, Camera | None]:
+    """The PyTorch backend, frames of a sequence and the mask images of a folder (same order),
+    and the sequence's camera when its dataset publishes one."""
     import cv2
 
-    from kvtracker_sdk import TorchBackend
-    from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend, open_input
 
+    run_input = open_input(source)
     mask_files = sorted(p for p in Path(masks).iterdir() if p.is_file())
-    pairs = zip(open_source(source), mask_files, range(frames), strict=False)
+    pairs = zip(run_input.source, mask_files, range(frames), strict=False)
     stream = ((f.image, f.timestamp, cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 0, None)
               for f, m, _ in pairs)
-    return TorchBackend.from_pretrained(weights), stream
+    return open_backend("torch", weights), stream, run_input.camera
 
 
 def main(argv: list[str] | None = None) -> Outcome:
@@ -76,14 +78,14 @@ def main(argv: list[str] | None = None) -> Outcome:
         parser.error("--weights needs --source and --masks")
 
     if args.weights:
-        backend, frames = real(args.weights, args.source, args.masks, args.frames)
+        backend, frames, camera = real(args.weights, args.source, args.masks, args.frames)
         config = TrackerConfig(mode="object", resolution=224)
     else:
-        backend, frames = simulated(args.frames, args.box)
+        backend, frames, camera = simulated(args.frames, args.box)
         config = TrackerConfig(mode="object")
 
     count, valid, keyframe_frames = 0, 0, []
-    with Tracker(config, backend) as tracker:
+    with open_tracker(config, backend, camera=camera) as tracker:
         tracker.on_keyframe(lambda event: keyframe_frames.append(event.frame_index))
         for image, timestamp, mask, box in frames:
             result = tracker.push_frame(image, timestamp=timestamp, mask=mask, bbox=box)

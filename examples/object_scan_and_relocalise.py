@@ -23,6 +23,7 @@ import numpy as np
 
 from kvtracker_sdk import Backend, Tracker, TrackerConfig
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
+from kvtracker_sdk.runs import open_tracker
 
 ORBIT_FRAMES = 720  # the simulated camera circles the object twice, 1 degree per frame
 
@@ -59,7 +60,7 @@ def run(tracker: Tracker, views: Iterator[View]) -> tuple[int, Positions]:
 
 def scan(map_path: Path, backend: Backend, views: Iterator[View]) -> tuple[int, Positions]:
     """Session 1: track the object over ``views`` and save the map."""
-    with Tracker(TrackerConfig(mode="object"), backend) as tracker:
+    with open_tracker(TrackerConfig(mode="object"), backend) as tracker:
         _, positions = run(tracker, views)
         info = tracker.save_map(map_path)
     print(f"session 1: saved {info.num_keyframes} keyframes to {map_path} "
@@ -69,7 +70,7 @@ def scan(map_path: Path, backend: Backend, views: Iterator[View]) -> tuple[int, 
 
 def relocalise(map_path: Path, backend: Backend, views: Iterator[View]) -> tuple[int, Positions]:
     """Session 2: a new tracker from the saved map; push frames until tracking is back."""
-    with Tracker.from_map(map_path, backend) as tracker:
+    with open_tracker(None, backend, load_map=map_path) as tracker:  # the map's saved config
         print(f"session 2: loaded the map -> {tracker.state.value} ({tracker.reason.value})")
         first_valid, positions = run(tracker, views)
         print(f"session 2: {tracker.state.value} after {first_valid + 1} frames")
@@ -101,13 +102,13 @@ def simulated(start: int, stop: int) -> tuple[Backend, Iterator[View]]:
 
 def real(weights: str, source: str, bbox: str, start: int, stop: int) -> tuple[Backend, Iterator[View]]:
     """The PyTorch backend and frames ``start:stop`` of a video or a sequence, one box for all."""
-    from kvtracker_sdk import TorchBackend
     from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.runs import open_backend
 
     box = tuple(float(v) for v in bbox.split(","))
     frames = (f for f in open_source(source) if start <= f.frame_index < stop)
     views = (View(f.image, f.timestamp, bbox=box) for f in frames)  # type: ignore[arg-type]
-    return TorchBackend.from_pretrained(weights), views
+    return open_backend("torch", weights), views
 
 
 def main(argv: list[str] | None = None) -> Outcome:

@@ -39,7 +39,8 @@ def encoded_frames(spec: dict[str, Any]) -> list[tuple[bytes, float]]:
     """The stream's frames as PNG bytes (lossless: the simulation reads its frame index back)."""
     _backend, frames, _truth = simulated_sequence(SimulatedSpec.model_validate(spec))
     return [
-        (cv2.imencode(".png", image[:, :, ::-1])[1].tobytes(), stamp) for image, stamp in frames
+        (cv2.imencode(".png", frame.image[:, :, ::-1])[1].tobytes(), frame.timestamp)
+        for frame in frames
     ]
 
 

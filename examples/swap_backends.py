@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kvtracker_sdk import Backend, Tracker, TrackerConfig
+from kvtracker_sdk import Backend, Camera, TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError
+from kvtracker_sdk.runs import open_tracker
 
 Frames = Iterator[tuple[np.ndarray, float]]  # (RGB uint8 [H, W, 3], timestamp in seconds)
 
@@ -33,7 +34,8 @@ class Outcome:
     swapped_at: int | None  # the frame the backends were swapped at (None: never)
 
 
-Setup = tuple[Backend, Callable[[], Backend], Backend, Frames, int]  # ..., frames available
+# first, second, another model, frames, frames available, the frames' camera (if known)
+Setup = tuple[Backend, Callable[[], Backend], Backend, Frames, int, Camera | None]
 
 
 def simulated(frames: int) -> Setup:
@@ -46,33 +48,32 @@ def simulated(frames: int) -> Setup:
     first = SimulatedBackend(path, seed=0)
     images = ((f.image, f.timestamp) for f in first.frames((240, 320), textured=False))
     return (first, lambda: SimulatedBackend(path, seed=0), SimulatedBackend(path, seed=1), images,
-            len(path))
+            len(path), None)
 
 
 def real(weights: str, source: str, frames: int) -> Setup:
     """PyTorch fp32 first; ONNX Runtime second if installed (else PyTorch bf16); a simulated
     backend stands for "another model" to show the refusal."""
-    import torch
-
-    from kvtracker_sdk import SimulatedBackend, TorchBackend
+    from kvtracker_sdk import SimulatedBackend
     from kvtracker_sdk.backends.simulated_scene import orbit
-    from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.errors import MissingDependencyError
+    from kvtracker_sdk.runs import open_backend, open_input
 
     def second() -> Backend:
         try:
-            from kvtracker_sdk.export_onnx import onnx_backend
-        except ImportError:  # the [onnx] extra (or the ONNX backend) is not installed
+            return open_backend("onnx", weights)  # exported once into a cache folder
+        except MissingDependencyError:  # the [onnx] extra is not installed
             print("ONNX backend unavailable: swapping to PyTorch bfloat16 instead")
-            return TorchBackend.from_pretrained(weights, dtype=torch.bfloat16)
-        return onnx_backend(weights)  # exported once into a cache folder
+            return open_backend("torch", weights, dtype="bfloat16")
 
-    first = TorchBackend.from_pretrained(weights)
+    first = open_backend("torch", weights)
     stranger = SimulatedBackend(orbit(10))
-    opened = open_source(source)
+    run_input = open_input(source)
+    opened = run_input.source
     stream = ((f.image, f.timestamp) for f in opened)
     limited = (item for _, item in zip(range(frames), stream, strict=False))
     # a video may only estimate its length (0: unknown): then trust --frames
-    return first, second, stranger, limited, min(frames, len(opened) or frames)
+    return first, second, stranger, limited, min(frames, len(opened) or frames), run_input.camera
 
 
 def main(argv: list[str] | None = None) -> Outcome:
@@ -85,18 +86,18 @@ def main(argv: list[str] | None = None) -> Outcome:
         parser.error("--weights needs --source (the frames to track)")
 
     if args.weights:
-        first, make_second, stranger, frames, available = real(
+        first, make_second, stranger, frames, available, camera = real(
             args.weights, args.source, args.frames
         )
         config = TrackerConfig(resolution=224, keyframing={"interval_frames": 3})
     else:
-        first, make_second, stranger, frames, available = simulated(args.frames)
+        first, make_second, stranger, frames, available, camera = simulated(args.frames)
         config = TrackerConfig(keyframing={"interval_frames": 30})
     # halfway through the frames there are (a source may hold fewer than --frames)
     swap_at = min(args.frames, available) // 2
     used, valid_after, refused, swapped_at = [], [], False, None
 
-    with Tracker(config, first) as tracker:
+    with open_tracker(config, first, camera=camera) as tracker:
         for k, (image, timestamp) in enumerate(frames):
             if k == swap_at:
                 try:

@@ -22,7 +22,8 @@ and bad input, and a raised input error leaves the tracker and its map untouched
     │   │   ├── SourceOpenError          cannot be opened at all: no such camera, stream or path
     │   │   └── FrameDecodeError         one frame of an opened source cannot be decoded
     │   ├── TrajectoryError              a trajectory file or pose array is malformed
-    │   └── EvaluationError              trajectories cannot be compared (no matches, too short)
+    │   ├── EvaluationError              trajectories cannot be compared (no matches, too short)
+    │   └── IntrinsicsError              no usable camera for an export (an implausible fitted focal)
     ├── StateError                       call not allowed in the current state (closed tracker, ...)
     │   └── IllegalTransitionError       a transition missing from the state table (a bug)
     ├── ModelError
@@ -62,6 +63,7 @@ __all__ = [
     "ImageDtypeError",
     "ImageShapeError",
     "InputError",
+    "IntrinsicsError",
     "KVTrackerError",
     "MapCorruptedError",
     "MapError",
@@ -169,6 +171,11 @@ class TrajectoryError(InputError):
 
 class EvaluationError(InputError):
     """Two trajectories cannot be compared (no matching stamps, too few poses for the metric)."""
+
+
+class IntrinsicsError(InputError):
+    """No usable camera for an export: none is known and the focal fitted to the points is
+    implausible (the message says how to pass a calibration)."""
 
 
 class StateError(KVTrackerError, RuntimeError):

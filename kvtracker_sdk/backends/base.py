@@ -103,7 +103,34 @@ class TrackResult:
 
 @runtime_checkable
 class Backend(Protocol):
-    """What every backend (torch, onnx, simulated) implements."""
+    """What every backend (torch, onnx, openvino, simulated, an app's own) implements.
+
+    A backend written outside the package works with ``Tracker`` when it provides:
+
+    * ``info`` -> :class:`BackendInfo`: ``backend`` (the runtime's name), ``model``, ``family``
+      (which frame preprocessing it gets, and which maps it may load: caches never cross
+      families), ``config_hash`` and ``weights_fingerprint`` (together the ``fingerprint``
+      saved maps are checked against), ``patch_size`` (model inputs are multiples of it),
+      ``extra_tokens_per_frame``, ``layout`` (the ``CacheLayout`` of its caches), ``dtype``,
+      ``device``. It must not change while a tracker uses the backend.
+    * ``map(images, masks=None)`` -> :class:`MapResult` for uint8 RGB [N, H, W, 3] at model
+      resolution: ``poses`` [N, 4, 4] T_world_cam (OpenCV axes) in the pass's own frame and
+      scale, ``confidence`` [N, H, W] in [0, 1], ``local_points`` [N, H, W, 3] in each camera's
+      frame, and a ``KVCache`` listing keyframes 0..N-1 (``MapResult.of_pass`` builds one from
+      per-layer K/V).
+    * ``track(image, cache, *, heads)`` -> :class:`TrackResult` for one uint8 [H, W, 3] image
+      against a cache this backend's ``map`` made: ``pose`` [4, 4] in the cache's frame; with
+      ``heads`` CONFIDENCE or ALL a mean ``confidence`` and ``confidence_map`` [H, W], with ALL
+      also ``local_points``. It must not change the cache beyond its scratch region.
+    * ``close()``: idempotent; a tracker never closes a backend it was given.
+    * its family's preprocessing: either ``kvtracker_sdk.preprocess.register_family(family,
+      preprocessing)`` once, or an attribute ``preprocessing`` (a
+      :class:`~kvtracker_sdk.preprocess.Preprocessing`) on the backend; the latter wins.
+
+    Optional: ``intrinsics`` in the results (pixels of the model-resolution images) when the
+    network predicts a camera. Bad input raises a typed ``kvtracker_sdk.errors`` error; any other
+    exception from ``map`` / ``track`` is reported by the tracker as a backend failure.
+    """
 
     @property
     def info(self) -> BackendInfo: ...

@@ -24,10 +24,10 @@ from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
-from kvtracker_sdk.cli.run_loop import InputFrame
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.runs.run_loop import InputFrame
 
 __all__ = ["SIMULATED_NOTICE", "demo", "register"]
 
@@ -107,7 +107,7 @@ def demo(
     from kvtracker_sdk.cli.demo_trajectory import default_loss_segment, desk_orbit, handheld_orbit
     from kvtracker_sdk.config import TrackerConfig
     from kvtracker_sdk.io.trajectory import Trajectory
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.runs.session import open_tracker
 
     state: CliState = ctx.find_root().obj
     image_size = _parse_size(size)
@@ -161,7 +161,7 @@ def demo(
                                                          image_size, mode))
         for f in backend.frames(image_size, textured=True)
     )
-    with Tracker(config, backend) as tracker, \
+    with open_tracker(config, backend) as tracker, \
             live_outputs(LiveOptions(view, view_port, ros2_bag), tracker, state) as live:
         run_session(state, tracker, rendered, total=len(truth), description=description,
                     options=live.around(options), announce_states=True)

@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from kvtracker_sdk.cli.backends import DEFAULT_WEIGHTS
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.runs.backends import DEFAULT_WEIGHTS
 
 if TYPE_CHECKING:
     from pydantic import BaseModel

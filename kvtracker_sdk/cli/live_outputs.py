@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Any
 import typer
 
 from kvtracker_sdk.cli.logging_setup import CliState
-from kvtracker_sdk.cli.run_loop import InputFrame
 from kvtracker_sdk.cli.session import OutputOptions
 from kvtracker_sdk.errors import KVTrackerError, MissingDependencyError
+from kvtracker_sdk.runs.run_loop import InputFrame
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:

@@ -32,12 +32,12 @@ import numpy as np
 
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cli.object_outputs import object_document
-from kvtracker_sdk.cli.run_loop import RunRecord
 from kvtracker_sdk.errors import EvaluationError, MissingDependencyError
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.ply import write_ply
 from kvtracker_sdk.io.trajectory import Trajectory, write_tum
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.runs.run_loop import RunRecord
 
 if TYPE_CHECKING:
     from kvtracker_sdk.cache.keyframe_map import KeyframeMap

@@ -21,11 +21,12 @@ from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.output_checks import check_output_file, check_output_folder
 from kvtracker_sdk.cli.outputs import RunDescription, RunOutputs, write_outputs
 from kvtracker_sdk.cli.progress import FrameProgress, busy
-from kvtracker_sdk.cli.run_loop import BadFramePolicy, InputFrame, RunRecord, run_frames
 from kvtracker_sdk.cli.summary import format_summary
 from kvtracker_sdk.errors import KVTrackerError, MapError, MapIOError, OutputError
 from kvtracker_sdk.io.trajectory import Trajectory
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.runs.run_loop import BadFramePolicy, InputFrame, RunRecord
+from kvtracker_sdk.runs.session import track
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
@@ -100,10 +101,10 @@ def run_session(
                         f"({event.reason.value})"
                     )
 
-            record = run_frames(
+            record = track(
                 tracker,
                 frames,
-                progress,
+                progress=progress,
                 before_frame=(lambda i, f: sink.set_time(i, f.timestamp)) if sink else None,
                 after_frame=_after_frame(sink, options.frame_observers),
                 on_state_change=announce,

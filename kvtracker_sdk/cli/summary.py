@@ -14,7 +14,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from kvtracker_sdk.cli.outputs import RunOutputs
-from kvtracker_sdk.cli.run_loop import RunRecord
+from kvtracker_sdk.runs.run_loop import RunRecord
 from kvtracker_sdk.types import MapStatus
 
 __all__ = ["format_summary"]

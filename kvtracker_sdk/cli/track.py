@@ -8,19 +8,19 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from kvtracker_sdk.cli.backends import DEFAULT_WEIGHTS, BackendKind, ComputeDtype, open_backend
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
-from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
 from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.progress import busy
-from kvtracker_sdk.cli.run_loop import BadFramePolicy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import ConfigError, MaskError
 from kvtracker_sdk.io.depth_frames import DepthFolder
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.runs.backends import DEFAULT_WEIGHTS, BackendKind, ComputeDtype, open_backend
+from kvtracker_sdk.runs.frames import FrameSelection, MaskFolder, parse_bbox, read_frames
+from kvtracker_sdk.runs.run_loop import BadFramePolicy
 from kvtracker_sdk.types import StateReason
 
 if TYPE_CHECKING:
@@ -51,7 +51,7 @@ def track(
     dtype: Annotated[ComputeDtype, typer.Option(
         help="Compute dtype (torch), precision hint (openvino).")] = ComputeDtype.FLOAT32,
     threads: Annotated[int | None, typer.Option(
-        help="CPU threads for inference (torch, openvino). [default: the runtime's choice]")] = None,
+        help="CPU threads for inference (torch, onnx, openvino). [default: the runtime's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
         help="Model input side d (224, 308, 504, 518): Pi3 at most d² pixels, DA3 the longest "
              "side. [default: the family's, Pi3 308, DA3 504]")] = None,
@@ -119,9 +119,9 @@ def track(
         "with depth.txt; needed otherwise for integer images]")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
-    from kvtracker_sdk.io.camera_files import read_camera_file
-    from kvtracker_sdk.io.live_sources import PacedSource, is_live_spec
-    from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.io.live_sources import is_live_spec
+    from kvtracker_sdk.runs.inputs import open_input
+    from kvtracker_sdk.runs.session import open_tracker
 
     state: CliState = ctx.find_root().obj
     live = is_live_spec(input_path) and not Path(input_path).exists()
@@ -138,23 +138,24 @@ def track(
     if bbox_once and box is None:
         raise ConfigError("--bbox-once needs --bbox x0,y0,x1,y1")
     selection = FrameSelection(start, stride, max_frames)
-    source = open_source(input_path, fps=fps)
-    if realtime:
-        source = PacedSource(source)
-    intrinsics = read_camera_file(camera) if camera is not None else source.camera()
+    run_input = open_input(input_path, camera=camera, fps=fps, realtime=realtime)
+    source, intrinsics = run_input.source, run_input.camera
     mask_folder = MaskFolder(masks) if masks is not None else None
     depth_folder = DepthFolder(depth) if depth is not None else None
     _check_object_inputs(_effective_mode(config, base, changes, load_map), masks, box,
                          loaded=load_map is not None)
     options = OutputOptions(
         out, rerun=rerun, min_confidence=min_confidence, voxel_size=voxel_size,
-        ground_truth=source.ground_truth(), save_map=save_map,
+        ground_truth=run_input.ground_truth, save_map=save_map,
     )
     check_outputs(options)  # before the weights load and the first frame, not after the run
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
-        with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map,
-                      camera=intrinsics) as tracker:
+        # with --load-map: the saved config is the base unless --config is given; options change it
+        override = config if load_map is None else (
+            base.updated(**changes) if base is not None else (changes or None))
+        with open_tracker(override, chosen, run_input, load_map=load_map,
+                          rebuild=rebuild_map) as tracker:
             description = RunDescription(
                 "track", str(input_path), simulated=False,
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map),
@@ -259,24 +260,10 @@ def _config_changes(**options: Any) -> dict[str, Any]:
     return changes
 
 
-def _tracker(
-    config: TrackerConfig,
-    base: TrackerConfig | None,
-    changes: dict[str, Any],
-    backend: Any,
-    load_map: Path | None,
-    *,
-    rebuild: bool = False,
-    camera: Any = None,
-) -> Any:
-    """A new tracker with ``config``, or with ``--load-map`` one relocalising against the saved
-    map (whose saved config is the base unless ``--config`` is given; the options change it)."""
-    from kvtracker_sdk.tracking.tracker import Tracker
+def _is_onnx_export(weights: str) -> bool:
+    from kvtracker_sdk.backends.onnx_manifest import MANIFEST_NAME
 
-    if load_map is None:
-        return Tracker(config, backend, camera=camera)
-    override = base.updated(**changes) if base is not None else (changes or None)
-    return Tracker.from_map(load_map, backend, override, rebuild=rebuild, camera=camera)
+    return (Path(weights) / MANIFEST_NAME).is_file()
 
 
 def _str(path: Path | None) -> str | None:

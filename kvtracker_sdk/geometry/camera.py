@@ -1,5 +1,6 @@
 """``Camera``: pinhole intrinsics of one image size, optional OpenCV distortion, and the
-projection matrix a renderer needs.
+projection matrix a renderer needs. The SDK's one camera type: the tracker's input and results,
+map files, camera files, and the exporters (COLMAP, nerfstudio, ROS) all take it.
 
 Conventions (the same as every K in the SDK, and OpenCV's):
 
@@ -109,6 +110,18 @@ class Camera:
         )
 
     @classmethod
+    def of(cls, camera: Any) -> Camera:
+        """From any object with ``fx, fy, cx, cy, width, height`` (and optionally
+        ``distortion``): another library's camera type."""
+        if isinstance(camera, Camera):
+            return camera
+        try:
+            return cls(camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+                       tuple(getattr(camera, "distortion", ()) or ()))
+        except AttributeError as exc:
+            raise InputError(f"not a camera (needs fx, fy, cx, cy, width, height): {camera!r}") from exc
+
+    @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Camera:
         """The inverse of :meth:`to_dict`."""
         try:
@@ -150,6 +163,11 @@ class Camera:
         vertical = math.atan(top / self.fy) + math.atan(bottom / self.fy)
         return math.degrees(horizontal), math.degrees(vertical)
 
+    @property
+    def vertical_fov(self) -> float:
+        """Vertical field of view in radians, ``2 atan(H / 2 fy)`` (a centred principal point)."""
+        return float(2.0 * math.atan2(self.height / 2.0, self.fy))
+
     def undistorted(self) -> Camera:
         """The camera of the undistorted image (same K and size, no distortion)."""
         return Camera(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
@@ -163,6 +181,21 @@ class Camera:
         if self.has_distortion:
             raise InputError("undistort the camera (Camera.undistorted) before transforming it")
         return Camera.from_K(transform.apply_to_K(self.K()), size[1], size[0])
+
+    def resized(self, width: int, height: int) -> Camera:
+        """The camera of this image resized (``cv2.resize``) to ``width`` x ``height``.
+
+        A resize scales pixel coordinates only, so a lens model's coefficients (which act on
+        normalised coordinates) stay valid and are kept."""
+        transform = PixelTransform.resize(self.size, (height, width))
+        scaled = Camera.from_K(transform.apply_to_K(self.K()), width, height)
+        return Camera(scaled.fx, scaled.fy, scaled.cx, scaled.cy, width, height, self.distortion)
+
+    def rays(self) -> np.ndarray:
+        """[H, W, 3] float64: the ray of every pixel centre with z = 1 (camera frame, OpenCV
+        axes), no distortion."""
+        v, u = np.mgrid[0:self.height, 0:self.width].astype(np.float64)
+        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], -1)
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points [..., 3] (OpenCV axes, Z > 0) -> pixels [..., 2], no distortion."""

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import invert_rigid, quat_wxyz_from_rotation
 from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
 from kvtracker_sdk.io.reconstruction import Reconstruction
 
 __all__ = ["COLMAP_PIXEL_OFFSET", "write_colmap_text", "write_images"]
@@ -60,14 +60,14 @@ def write_images(reconstruction: Reconstruction, folder: Path) -> None:
             handle.write(data.tobytes())
 
 
-def _camera_ids(reconstruction: Reconstruction) -> dict[PinholeIntrinsics, int]:
-    ids: dict[PinholeIntrinsics, int] = {}
+def _camera_ids(reconstruction: Reconstruction) -> dict[Camera, int]:
+    ids: dict[Camera, int] = {}
     for posed in reconstruction.images:
         ids.setdefault(posed.intrinsics, len(ids) + 1)
     return ids
 
 
-def _write_cameras(path: Path, camera_ids: dict[PinholeIntrinsics, int]) -> None:
+def _write_cameras(path: Path, camera_ids: dict[Camera, int]) -> None:
     with atomic_write(path) as handle:
         handle.write("# Camera list with one line of data per camera:\n")
         handle.write("#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n")
@@ -79,7 +79,7 @@ def _write_cameras(path: Path, camera_ids: dict[PinholeIntrinsics, int]) -> None
 
 
 def _write_images_txt(
-    path: Path, reconstruction: Reconstruction, camera_ids: dict[PinholeIntrinsics, int]
+    path: Path, reconstruction: Reconstruction, camera_ids: dict[Camera, int]
 ) -> None:
     order = np.argsort(reconstruction.point_image, kind="stable")  # points grouped by image
     bounds = np.searchsorted(reconstruction.point_image[order],

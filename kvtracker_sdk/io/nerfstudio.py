@@ -22,9 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.colmap_text import COLMAP_PIXEL_OFFSET, write_images
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
 from kvtracker_sdk.io.ply import write_ply
 from kvtracker_sdk.io.reconstruction import Reconstruction
 
@@ -60,7 +60,7 @@ def write_nerfstudio(reconstruction: Reconstruction, out_dir: str | os.PathLike[
     return path
 
 
-def _intrinsics(camera: PinholeIntrinsics) -> dict[str, Any]:
+def _intrinsics(camera: Camera) -> dict[str, Any]:
     return {
         "fl_x": camera.fx, "fl_y": camera.fy,
         "cx": camera.cx + COLMAP_PIXEL_OFFSET, "cy": camera.cy + COLMAP_PIXEL_OFFSET,

@@ -20,8 +20,9 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import InputError
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import project_to_rotation
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
+from kvtracker_sdk.io.export_camera import export_camera
 
 __all__ = ["PosedImage", "Reconstruction", "reconstruction_from_map", "rigid"]
 
@@ -33,7 +34,7 @@ class PosedImage:
     name: str  # file name the writers use, e.g. "kf_0003.png"
     T_world_cam: np.ndarray  # float64 [4, 4]
     image: np.ndarray
-    intrinsics: PinholeIntrinsics
+    intrinsics: Camera
     timestamp: float | None = None
 
 
@@ -56,17 +57,20 @@ class Reconstruction:
 
 def reconstruction_from_map(
     keyframe_map: KeyframeMap,
-    intrinsics: PinholeIntrinsics | None = None,
+    intrinsics: Camera | None = None,
     *,
     min_confidence: float = 0.5,
     stride: int = 1,
+    force_fitted_focal: bool = False,
 ) -> Reconstruction:
     """The keyframes as posed images (model resolution) and their confident pixels as points.
 
-    ``intrinsics`` are at the map's resolution; None: one focal length fitted to every
-    keyframe's local points (:func:`estimate_intrinsics`). ``stride`` keeps every stride-th
-    pixel in each direction (a lighter cloud). Masked keyframes (object mode) contribute only
-    their masked pixels.
+    ``intrinsics`` are at the map's resolution (``io.export_camera.export_camera`` picks them
+    from a map file's stored camera); None: one focal length fitted to every keyframe's local
+    points (:func:`estimate_intrinsics`), refused (IntrinsicsError) when under a tenth of the
+    image width unless ``force_fitted_focal``. ``stride`` keeps every stride-th pixel in each
+    direction (a lighter cloud). Masked keyframes (object mode) contribute only their masked
+    pixels.
     """
     if stride < 1:
         raise InputError(f"stride must be >= 1, got {stride}")
@@ -74,11 +78,8 @@ def reconstruction_from_map(
     if not keyframes:
         raise InputError("the map has no keyframes")
     if intrinsics is None:
-        intrinsics = estimate_intrinsics(
-            np.stack([kf.local_points for kf in keyframes]),
-            np.stack([kf.confidence_map for kf in keyframes]),
-            min_confidence=min_confidence,
-        )
+        intrinsics, _origin = export_camera(keyframe_map, min_confidence=min_confidence,
+                                            force_fitted_focal=force_fitted_focal)
     rays = intrinsics.rays()
     height, width = rays.shape[:2]
     v, u = np.mgrid[0:height, 0:width]
@@ -127,7 +128,7 @@ def rigid(T_world_cam: np.ndarray) -> np.ndarray:
 
 
 def _pinhole_residuals(
-    local_points: np.ndarray, intrinsics: PinholeIntrinsics, uv: np.ndarray
+    local_points: np.ndarray, intrinsics: Camera, uv: np.ndarray
 ) -> np.ndarray:
     """Pixel distance between where the model's points project and the pixels they belong to."""
     if not len(uv):

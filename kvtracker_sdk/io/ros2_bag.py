@@ -39,7 +39,8 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
+from kvtracker_sdk.geometry.camera import Camera
+from kvtracker_sdk.io.intrinsics import estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
 from kvtracker_sdk.io.ros2_messages import RosMessages
 from kvtracker_sdk.io.ros_frames import (
@@ -86,7 +87,7 @@ class Ros2BagWriter:
         self,
         path: str | os.PathLike[str],
         *,
-        intrinsics: PinholeIntrinsics | None = None,
+        intrinsics: Camera | None = None,
         T_base_optical: np.ndarray | None = None,
         frames: FrameNames = FrameNames(),
         position_sigma: float = 0.01,
@@ -192,7 +193,7 @@ class Ros2BagWriter:
             self._previous_valid = valid
             camera = self.intrinsics
             if not self._given and result.intrinsics is not None:  # the tracker's own camera
-                camera = PinholeIntrinsics.of(result.intrinsics)
+                camera = Camera.of(result.intrinsics)
             if camera is not None:
                 if (camera.width, camera.height) != (width, height):
                     camera = camera.resized(width, height)

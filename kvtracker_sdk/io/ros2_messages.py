@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import MissingDependencyError
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import quat_xyzw_from_rotation
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
 
 __all__ = ["RosMessages"]
 
@@ -93,9 +93,9 @@ class RosMessages:
         )
 
     # ------------------------------------------------------------------ camera and map
-    def camera_info(self, stamp_ns: int, frame: str, camera: PinholeIntrinsics) -> Any:
+    def camera_info(self, stamp_ns: int, frame: str, camera: Camera) -> Any:
         """ROS's pixel convention is OpenCV's (and the SDK's): K is written as it is."""
-        K = camera.K
+        K = camera.K()
         P = np.zeros((3, 4))
         P[:, :3] = K
         return self._t("sensor_msgs/msg/CameraInfo")(
@@ -126,7 +126,7 @@ class RosMessages:
 
     def keyframe_markers(
         self, stamp_ns: int, frame: str, poses: dict[int, np.ndarray], size: float,
-        camera: PinholeIntrinsics | None,
+        camera: Camera | None,
     ) -> Any:
         """A DELETEALL, then one LINE_LIST frustum per keyframe (``ns`` "keyframes", id = the
         keyframe id), posed by ``T_frame_cam`` (camera at the apex, OpenCV axes)."""
@@ -171,7 +171,7 @@ class RosMessages:
             header=self.header(stamp_ns, ""), status=[status])
 
 
-def _frustum_lines(camera: PinholeIntrinsics | None, size: float) -> list[np.ndarray]:
+def _frustum_lines(camera: Camera | None, size: float) -> list[np.ndarray]:
     """Pairs of points (LINE_LIST) drawing a frustum of depth ``size`` in the camera frame."""
     if camera is None:
         half_w, half_h = 0.5, 0.375

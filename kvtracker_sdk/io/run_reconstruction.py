@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.io.reconstruction import (
     PosedImage,
     Reconstruction,
@@ -27,9 +27,11 @@ from kvtracker_sdk.io.reconstruction import (
     rigid,
 )
 from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.log import get_logger
 
 __all__ = ["find_map", "load_reconstruction"]
 
+_log = get_logger(__name__)
 _STAMP_TOLERANCE = 1e-6  # seconds: trajectory.txt stores stamps in full precision
 
 
@@ -52,19 +54,29 @@ def load_reconstruction(
     run_or_map: str | os.PathLike[str],
     *,
     all_frames: bool = False,
-    intrinsics: PinholeIntrinsics | None = None,
+    intrinsics: Camera | None = None,
     min_confidence: float = 0.5,
     stride: int = 1,
+    force_fitted_focal: bool = False,
 ) -> Reconstruction:
     """Keyframe cameras and points of the map (and, with ``all_frames``, every tracked frame).
 
-    ``intrinsics``: a calibration of the map's images (model resolution); None: estimated.
+    ``intrinsics``: a calibration of the input images or the map's (any size: undistorted and
+    resized to the map's images); None: the camera stored in the map, else a fit to the points
+    (``io.export_camera``: an implausible fit raises IntrinsicsError unless forced).
     """
+    from kvtracker_sdk.io.export_camera import export_camera
     from kvtracker_sdk.io.map_file import load_map  # loads torch (the map's cache)
 
     map_path = find_map(run_or_map)
-    keyframe_map = load_map(map_path).keyframe_map
-    reconstruction = reconstruction_from_map(keyframe_map, intrinsics,
+    loaded = load_map(map_path)
+    keyframe_map = loaded.keyframe_map
+    camera, origin = export_camera(keyframe_map, loaded.info, given=intrinsics,
+                                   min_confidence=min_confidence,
+                                   force_fitted_focal=force_fitted_focal)
+    _log.info("export camera", origin=origin.value, fx=camera.fx, fy=camera.fy,
+              cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height)
+    reconstruction = reconstruction_from_map(keyframe_map, camera,
                                              min_confidence=min_confidence, stride=stride)
     if not all_frames:
         return reconstruction
@@ -76,7 +88,7 @@ def load_reconstruction(
     return reconstruction.with_images(_tracked_frames(run, camera, keyframe_map.metadata))
 
 
-def _tracked_frames(run: Path, camera: PinholeIntrinsics, metadata: Any) -> list[PosedImage]:
+def _tracked_frames(run: Path, camera: Camera, metadata: Any) -> list[PosedImage]:
     from kvtracker_sdk.io.sources import open_source
 
     document = _run_document(run)

@@ -16,6 +16,7 @@ from kvtracker_sdk.preprocess.families import (
     Preprocessing,
     for_family,
     named,
+    register_family,
 )
 from kvtracker_sdk.preprocess.masks import BBox, MaskResampling, box_mask, fit_box, mask_bounds
 from kvtracker_sdk.preprocess.resampling import Resized, to_uint8
@@ -45,5 +46,6 @@ __all__ = [
     "mask_bounds",
     "named",
     "pi3_kvtracker_plan",
+    "register_family",
     "to_uint8",
 ]

@@ -6,8 +6,9 @@ config does not choose one. Its ``name`` is recorded in every saved map, so a lo
 frames can be prepared the way its keyframes were.
 
 ``FAMILY_PREPROCESSING`` maps a backend family (``BackendInfo.family``) to the name of its
-preprocessing; ``PREPROCESSINGS`` maps names to definitions. A new family registers a line in
-the first (and, if it needs its own pipeline, a definition in the second).
+preprocessing; ``PREPROCESSINGS`` maps names to definitions. Both are read-only views: a family
+defined outside the package (an app's own backend) is added with :func:`register_family`, or its
+backend declares a ``preprocessing`` attribute (``backends/base.py``).
 
 What "resolution" (the config's side d) means:
 
@@ -19,6 +20,7 @@ What "resolution" (the config's side d) means:
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
@@ -48,6 +50,7 @@ __all__ = [
     "Preprocessing",
     "for_family",
     "named",
+    "register_family",
 ]
 
 Plan = Callable[[Size, int, int], tuple[ResizeStep, ...]]  # (source, side, patch) -> steps
@@ -124,17 +127,57 @@ LEGACY_AREA_FLOOR = Preprocessing(
     mask_resampling=MaskResampling.NEAREST,
 )
 
-PREPROCESSINGS: Mapping[str, Preprocessing] = MappingProxyType(
-    {p.name: p for p in (PI3_KVTRACKER, DA3_UPPER_BOUND, LEGACY_AREA_FLOOR)}
-)
-FAMILY_PREPROCESSING: Mapping[str, str] = MappingProxyType(
-    {
-        "pi3": PI3_KVTRACKER.name,
-        "da3": DA3_UPPER_BOUND.name,
-        # the simulated backend stands in for the paper's model (Pi3)
-        "simulated": PI3_KVTRACKER.name,
-    }
-)
+_BUILT_IN = (PI3_KVTRACKER, DA3_UPPER_BOUND, LEGACY_AREA_FLOOR)
+_preprocessings: dict[str, Preprocessing] = {p.name: p for p in _BUILT_IN}
+_family_preprocessing: dict[str, str] = {
+    "pi3": PI3_KVTRACKER.name,
+    "da3": DA3_UPPER_BOUND.name,
+    # the simulated backend stands in for the paper's model (Pi3)
+    "simulated": PI3_KVTRACKER.name,
+}
+_BUILT_IN_FAMILIES = frozenset(_family_preprocessing)
+_registry_lock = threading.Lock()  # registrations may come from any thread of an app
+
+# read-only views: they show every registration, and only register_family changes them
+PREPROCESSINGS: Mapping[str, Preprocessing] = MappingProxyType(_preprocessings)
+FAMILY_PREPROCESSING: Mapping[str, str] = MappingProxyType(_family_preprocessing)
+
+
+def register_family(family: str, preprocessing: Preprocessing | str = PI3_KVTRACKER) -> None:
+    """Prepare the frames of model family ``family`` (``BackendInfo.family``) with
+    ``preprocessing``: a :class:`Preprocessing` of the app's own, or a known one's name.
+
+    Registering the same pair again is a no-op, so an app may call it at every start. Raises
+    ConfigError for an empty family name, a built-in family, a family already registered with
+    another preprocessing, or a new preprocessing whose name a different definition holds (the
+    name is what saved maps record, so it must mean one pipeline).
+    """
+    if not isinstance(family, str) or not family:
+        raise ConfigError(f"a model family needs a non-empty name, got {family!r}")
+    with _registry_lock:
+        if isinstance(preprocessing, str):
+            definition = _preprocessings.get(preprocessing)
+            if definition is None:
+                raise ConfigError(f"unknown preprocessing {preprocessing!r} "
+                                  f"(known: {sorted(_preprocessings)})")
+        elif isinstance(preprocessing, Preprocessing):
+            definition = preprocessing
+            held = _preprocessings.get(definition.name)
+            if held is not None and held != definition:
+                raise ConfigError(f"preprocessing name {definition.name!r} is taken by another "
+                                  "definition; give yours its own name")
+        else:
+            raise ConfigError(f"preprocessing must be a Preprocessing or a name, got "
+                              f"{type(preprocessing).__name__}")
+        current = _family_preprocessing.get(family)
+        if current == definition.name:
+            _preprocessings.setdefault(definition.name, definition)
+            return
+        if family in _BUILT_IN_FAMILIES or current is not None:
+            raise ConfigError(f"model family {family!r} is already registered with "
+                              f"preprocessing {current!r}")
+        _preprocessings.setdefault(definition.name, definition)
+        _family_preprocessing[family] = definition.name
 
 
 def named(name: str) -> Preprocessing:
@@ -155,5 +198,7 @@ def for_family(family: str) -> Preprocessing:
     except KeyError:
         raise ConfigError(
             f"no preprocessing is registered for model family {family!r} "
-            f"(known: {sorted(FAMILY_PREPROCESSING)})"
+            f"(known: {sorted(FAMILY_PREPROCESSING)}): call "
+            "kvtracker_sdk.preprocess.register_family(family, preprocessing) once, or give the "
+            "backend a 'preprocessing' attribute (docs/backends.md)"
         ) from None

@@ -1,18 +1,30 @@
-"""The ``eval-many`` manifest: which sequences, which configurations, which model.
+"""The ``eval-many`` manifest: which sequences, which configurations, which backends.
 
 A JSON or YAML file; relative paths are resolved against the manifest's folder::
 
     {
       "model": {"weights": "pi3/model.safetensors"},      # loaded once per worker (a path)
-      "configs": {"default": {}, "d224": {"resolution": 224}},
+      "configs": {
+        "default": {},
+        "d224": {"resolution": 224},
+        "onnx": {"backend": {"kind": "onnx", "weights": "pi3_onnx/"}},
+        "ov_bf16": {"backend": {"kind": "openvino", "weights": "pi3_onnx/", "dtype": "bfloat16"}}
+      },
       "sequences": [
         {"name": "fr2_desk", "source": "data/fr2_desk", "ground_truth": "data/fr2_desk/gt.txt"},
+        {"name": "calibrated", "source": "data/video.mp4", "camera": "data/camera.yaml", ...},
         {"name": "sim_orbit", "simulated": {"orbit_frames": 600, "seed": 1}}
       ]
     }
 
+``model`` is a backend (``runs.backends.BackendSpec``: ``kind`` torch | onnx | openvino,
+``weights``, ``dtype``, ``device``, ``threads``, ``options``; PyTorch by default). A config's
+``backend`` names another one for that config (its ``weights`` default to the model's); the rest
+of a config is ``TrackerConfig`` fields. Each worker opens each backend at most once.
+
 A *real* sequence is any source ``kvtracker track`` reads (video, image folder, TUM or 7-Scenes
-folder) with a ground-truth trajectory (given, or shipped by the source). A *simulated* sequence
+folder) with a ground-truth trajectory (given, or shipped by the source) and its camera (an
+intrinsics file given as ``camera``, or the one the dataset publishes). A *simulated* sequence
 drives ``SimulatedBackend`` over a ground-truth trajectory (a TUM file or a generated orbit): it
 needs no weights. Every sequence runs once per configuration.
 """
@@ -27,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import ConfigError, install_command
+from kvtracker_sdk.runs.backends import BackendSpec
 
 __all__ = ["EvalManifest", "ModelSpec", "SequenceSpec", "SimulatedSpec", "load_manifest"]
 
@@ -37,12 +50,11 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class ModelSpec(_Strict):
-    """The network real sequences run on: a checkpoint path the workers share (never shipped
-    through a task queue or an object store: each worker loads it once)."""
-
-    weights: Path
-    dtype: str = "float32"
+# The network real sequences run on: weights the workers share by path (never shipped through a
+# task queue or an object store: each worker loads them once). The name is kept for manifests'
+# readers; it is the library's backend spec.
+ModelSpec = BackendSpec
+_BACKEND_KEY = "backend"  # in a config: its backend; every other key is a TrackerConfig field
 
 
 class SimulatedSpec(_Strict):
@@ -71,6 +83,7 @@ class SequenceSpec(_Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
     source: Path | None = None
     ground_truth: Path | None = None
+    camera: Path | None = None  # intrinsics file; None: the dataset's published camera, if any
     frames: int | None = Field(default=None, ge=1)  # first N frames of the source
     simulated: SimulatedSpec | None = None
 
@@ -100,16 +113,30 @@ class EvalManifest(_Strict):
         names = [s.name for s in self.sequences]
         if len(set(names)) != len(names):
             raise ValueError(f"sequence names must be unique, got {names}")
-        if any(s.source is not None for s in self.sequences) and self.model is None:
-            raise ValueError("real sequences need a model (model.weights)")
-        for name, overrides in self.configs.items():
+        real = any(s.source is not None for s in self.sequences)
+        for name in self.configs:
             if not name or not name.replace("_", "").replace("-", "").isalnum():
                 raise ValueError(f"config name {name!r}: letters, digits, '-' and '_' only")
-            TrackerConfig.from_dict(overrides)  # ConfigError now, not in a worker later
+            self.tracker_config(name)  # ConfigError now, not in a worker later
+            if real and self.backend_spec(name) is None:
+                raise ValueError("real sequences need a model (model.weights) or a backend in "
+                                 f"config {name!r}")
         return self
 
     def tracker_config(self, name: str) -> TrackerConfig:
-        return TrackerConfig.from_dict(self.configs[name])
+        fields = {k: v for k, v in self.configs[name].items() if k != _BACKEND_KEY}
+        return TrackerConfig.from_dict(fields)
+
+    def backend_spec(self, name: str) -> BackendSpec | None:
+        """The backend of config ``name``: its own ``backend``, else the manifest's model."""
+        own = self.configs[name].get(_BACKEND_KEY)
+        if own is None:
+            return self.model
+        if not isinstance(own, dict):
+            raise ValueError(f"config {name!r}: backend must be a mapping, got {own!r}")
+        if "weights" not in own and self.model is not None:
+            own = {**own, "weights": self.model.weights}
+        return BackendSpec.of(own)
 
     def tasks(self) -> list[tuple[SequenceSpec, str]]:
         """Every (sequence, config name) pair, in manifest order."""
@@ -121,15 +148,19 @@ def _resolve(document: Any, base: Path) -> Any:
     for sequence in document.get("sequences", []) if isinstance(document, dict) else []:
         if not isinstance(sequence, dict):
             continue
-        for key in ("source", "ground_truth"):
+        for key in ("source", "ground_truth", "camera"):
             if isinstance(sequence.get(key), str):
                 sequence[key] = str(base / sequence[key])
         simulated = sequence.get("simulated")
         if isinstance(simulated, dict) and isinstance(simulated.get("ground_truth"), str):
             simulated["ground_truth"] = str(base / simulated["ground_truth"])
     model = document.get("model") if isinstance(document, dict) else None
-    if isinstance(model, dict) and isinstance(model.get("weights"), str):
-        model["weights"] = str(base / model["weights"])
+    configs = document.get("configs") if isinstance(document, dict) else None
+    backends = [c.get(_BACKEND_KEY) for c in configs.values() if isinstance(c, dict)] \
+        if isinstance(configs, dict) else []
+    for spec in (model, *backends):
+        if isinstance(spec, dict) and isinstance(spec.get("weights"), str):
+            spec["weights"] = str(base / spec["weights"])
     return document
 
 

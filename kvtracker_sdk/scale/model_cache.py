@@ -1,5 +1,6 @@
-"""A worker's model: loaded from the shared path on first use, then reused by every task the
-worker runs (weights never travel through a task queue or Ray's object store)."""
+"""A worker's backends: each opened from its spec (weights by shared path) on first use, then
+reused by every task the worker runs (weights never travel through a task queue or Ray's object
+store). A manifest whose configs name several runtimes gives a worker one backend per runtime."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import threading
 from typing import TYPE_CHECKING
 
 from kvtracker_sdk.errors import ConfigError
-from kvtracker_sdk.scale.manifest import ModelSpec
+from kvtracker_sdk.runs.backends import BackendSpec
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
@@ -16,27 +17,31 @@ __all__ = ["ModelCache"]
 
 
 class ModelCache:
-    """``get()`` returns the one backend for ``spec`` (thread-safe; loads at most once)."""
+    """``get(spec)`` returns the one backend for ``spec`` (default: the cache's own ``spec``);
+    thread-safe, each spec opened at most once. ``threads`` is given to a spec that sets none."""
 
-    def __init__(self, spec: ModelSpec | None) -> None:
+    def __init__(self, spec: BackendSpec | None, *, threads: int | None = None) -> None:
         self.spec = spec
-        self.loads = 0  # how many times weights were read (tests check it stays at most 1)
-        self._backend: Backend | None = None
+        self.threads = threads
+        self.loads = 0  # how many times weights were read (tests check: once per spec at most)
+        self._backends: dict[str, Backend] = {}
         self._lock = threading.Lock()
 
-    def get(self) -> Backend:
+    def get(self, spec: BackendSpec | None = None) -> Backend:
+        chosen = spec if spec is not None else self.spec
+        if chosen is None:
+            raise ConfigError("this task needs a model but the manifest names none")
+        key = chosen.model_dump_json()
         with self._lock:
-            if self._backend is None:
-                if self.spec is None:
-                    raise ConfigError("this task needs a model but the manifest names none")
-                from kvtracker_sdk.backends.torch_backend import TorchBackend
-
-                self._backend = TorchBackend.from_pretrained(self.spec.weights, dtype=self.spec.dtype)
+            backend = self._backends.get(key)
+            if backend is None:
+                backend = chosen.open(threads=self.threads)
+                self._backends[key] = backend
                 self.loads += 1
-            return self._backend
+            return backend
 
     def close(self) -> None:
         with self._lock:
-            if self._backend is not None:
-                self._backend.close()
-                self._backend = None
+            backends, self._backends = list(self._backends.values()), {}
+        for backend in backends:
+            backend.close()

@@ -52,15 +52,15 @@ class EvalManyResult:
             f"# eval-many ({len(self.results)} runs, engine {self.engine}, {self.workers} workers)",
             "",
             "| sequence | config | frames | valid | keyframes | ATE RMSE (m) | RPE t (m) | "
-            "RPE r (deg) | note |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "RPE r (deg) | backend | note |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in self.results:
             note = ("simulated" if r.simulated else "") + (f" {r.error}" if r.error else "")
             lines.append(
                 f"| {r.sequence} | {r.config} | {r.frames} | {r.valid_poses} | {r.keyframes} | "
                 f"{_fmt(r.ate_rmse_m)} | {_fmt(r.rpe_translation_rmse_m)} | "
-                f"{_fmt(r.rpe_rotation_rmse_deg)} | {note.strip()} |"
+                f"{_fmt(r.rpe_rotation_rmse_deg)} | {r.backend} | {note.strip()} |"
             )
         lines += ["", "| config | sequences scored | mean ATE (m) | mean RPE t (m) | "
                   "mean RPE r (deg) |", "|---|---|---|---|---|"]

@@ -6,13 +6,15 @@
   already connected to, or on a local one started bound to 127.0.0.1 (``ray_runtime``).
 
 All three call ``sequence_run.run_sequence`` with the same arguments, so they give the same
-numbers. Tasks cross process boundaries as JSON strings of the manifest's own models and come back
+numbers. Each config runs on its own backend (``EvalManifest.backend_spec``), which a worker opens
+once, on its first task of that config. Tasks cross process boundaries as JSON strings of the manifest's own models and come back
 as plain dicts: nothing of ours is unpickled from a file, and weights travel only as a path.
 """
 
 from __future__ import annotations
 
 import enum
+import json
 import os
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -22,6 +24,7 @@ from typing import Any
 
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.runs.backends import BackendSpec
 from kvtracker_sdk.scale.manifest import EvalManifest, ModelSpec, SequenceSpec
 from kvtracker_sdk.scale.model_cache import ModelCache
 from kvtracker_sdk.scale.results import EvalManyResult
@@ -40,17 +43,19 @@ class Engine(str, enum.Enum):
     RAY = "ray"
 
 
-# (sequence JSON, config name, config overrides JSON) — what one task ships to a worker
-_Task = tuple[str, str, str]
+# (sequence JSON, config name, TrackerConfig JSON, backend spec JSON or "") — what one task
+# ships to a worker
+_Task = tuple[str, str, str, str]
 
 
 def _tasks(manifest: EvalManifest) -> list[_Task]:
-    import json
-
-    return [
-        (spec.model_dump_json(), name, json.dumps(manifest.configs[name]))
-        for spec, name in manifest.tasks()
-    ]
+    tasks: list[_Task] = []
+    for spec, name in manifest.tasks():
+        backend = manifest.backend_spec(name)
+        fields = {k: v for k, v in manifest.configs[name].items() if k != "backend"}
+        tasks.append((spec.model_dump_json(), name, json.dumps(fields),
+                      "" if backend is None else backend.model_dump_json()))
+    return tasks
 
 
 class TaskWorker:
@@ -58,22 +63,23 @@ class TaskWorker:
 
     def __init__(self, model_json: str | None, out_dir: str, threads: int) -> None:
         model = ModelSpec.model_validate_json(model_json) if model_json else None
-        self._models = ModelCache(model)
+        # the task's thread count for every runtime: results depend on how reductions split
+        self._models = ModelCache(model, threads=threads)
         self._out_dir = Path(out_dir)
         self._threads = threads
         self._name = f"pid{os.getpid()}"
 
     def run(self, task: _Task) -> dict[str, Any]:
-        import json
-
         from kvtracker_sdk.config import TrackerConfig
 
-        spec_json, config_name, overrides = task
+        spec_json, config_name, config_json, backend_json = task
         spec = SequenceSpec.model_validate_json(spec_json)
-        config = TrackerConfig.from_dict(json.loads(overrides))
-        result = run_sequence(spec, config_name, config, self._models.get, self._out_dir,
-                              threads=self._threads, worker=self._name,
-                              model_loads=lambda: self._models.loads)
+        config = TrackerConfig.from_dict(json.loads(config_json))
+        backend = BackendSpec.model_validate_json(backend_json) if backend_json else None
+        result = run_sequence(spec, config_name, config, lambda: self._models.get(backend),
+                              self._out_dir, threads=self._threads, worker=self._name,
+                              model_loads=lambda: self._models.loads,
+                              backend_label=backend.label() if backend else "none")
         return result.to_dict()
 
     @property

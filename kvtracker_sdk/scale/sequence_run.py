@@ -5,6 +5,10 @@ The same function runs in the caller's process (``--engine serial``), in a proce
 are identical. What could make them differ is pinned here: torch's thread count (reductions split
 across threads add in another order) is set per task, and mapping runs as the configuration says
 (keep ``threading.async_mapping`` off, the default, for bit-identical poses).
+
+A task tracks through the library's one path (``runs``: ``open_input`` with the sequence's
+camera, ``open_tracker``, ``track``), so its trajectory is byte for byte the one ``kvtracker
+track`` writes for the same config, backend and thread count.
 """
 
 from __future__ import annotations
@@ -17,12 +21,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import EvaluationError, KVTrackerError
 from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.trajectory import Trajectory, read_trajectory, write_tum
+from kvtracker_sdk.io.trajectory import Trajectory, write_tum
+from kvtracker_sdk.runs.frames import FrameSelection
+from kvtracker_sdk.runs.run_loop import InputFrame
 from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec
 
 if TYPE_CHECKING:
@@ -30,7 +34,7 @@ if TYPE_CHECKING:
 
 __all__ = ["BackendProvider", "SequenceResult", "run_sequence", "simulated_sequence", "torch_threads"]
 
-BackendProvider = Callable[[], "Backend"]  # the worker's model, loaded at most once
+BackendProvider = Callable[[], "Backend"]  # the config's backend, opened at most once per worker
 
 
 @dataclass(frozen=True)
@@ -39,6 +43,7 @@ class SequenceResult:
 
     sequence: str
     config: str
+    backend: str  # the runtime that ran it: "torch/float32", "onnx/float32", ..., "simulated"
     simulated: bool
     frames: int
     valid_poses: int
@@ -72,7 +77,7 @@ def torch_threads(count: int) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-def simulated_sequence(spec: SimulatedSpec) -> tuple[Backend, Iterator[tuple[np.ndarray, float]], Trajectory]:
+def simulated_sequence(spec: SimulatedSpec) -> tuple[Backend, Iterator[InputFrame], Trajectory]:
     from kvtracker_sdk.backends.simulated import SimulatedBackend
     from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 
@@ -89,23 +94,8 @@ def simulated_sequence(spec: SimulatedSpec) -> tuple[Backend, Iterator[tuple[np.
     )
     # flat frames: the simulated backend reads its frame index from the pixels, texture is
     # only for people looking at a demo, and rendering it would dominate the run's time
-    frames = ((f.image, f.timestamp) for f in backend.frames(spec.size, textured=False))
+    frames = (InputFrame(f.image, f.timestamp) for f in backend.frames(spec.size, textured=False))
     return backend, frames, Trajectory(truth.timestamps, truth.poses)
-
-
-def _real(
-    spec: SequenceSpec, provider: BackendProvider
-) -> tuple[Backend, Iterator[tuple[np.ndarray, float]], Trajectory]:
-    from kvtracker_sdk.io.sources import open_source
-
-    assert spec.source is not None
-    source = open_source(spec.source)
-    truth = read_trajectory(spec.ground_truth) if spec.ground_truth else source.ground_truth()
-    if truth is None:
-        raise EvaluationError(f"sequence {spec.name}: no ground truth (give ground_truth)")
-    limit = spec.frames if spec.frames is not None else len(source)
-    frames = ((f.image, f.timestamp) for f in source if f.frame_index < limit)
-    return provider(), frames, truth
 
 
 def run_sequence(
@@ -118,31 +108,36 @@ def run_sequence(
     threads: int = 1,
     worker: str = "main",
     model_loads: Callable[[], int] = lambda: 0,
+    backend_label: str = "torch/float32",
 ) -> SequenceResult:
     """Track ``spec`` under ``config``, write ``out_dir/<sequence>/<config>/`` (trajectory.txt,
     result.json) and return the numbers. A typed SDK error in scoring becomes the result's
     ``error``; anything else propagates (a bug, not a result)."""
     from kvtracker_sdk.eval.report import evaluate_trajectories
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.runs.inputs import open_input
+    from kvtracker_sdk.runs.session import open_tracker, track
 
     start = time.perf_counter()
     with torch_threads(threads):
         if spec.simulated is not None:
             backend, frames, truth = simulated_sequence(spec.simulated)
+            with open_tracker(config, backend) as tracker:
+                record = track(tracker, frames)
         else:
-            backend, frames, truth = _real(spec, provider)
-        tracker = Tracker(config, backend)  # does not close a backend it was given
-        try:
-            results = [tracker.push_frame(image, timestamp=stamp) for image, stamp in frames]
-            tracker.wait_for_map(timeout=None)
-            keyframes = tracker.map_status.num_keyframes
-        finally:
-            tracker.close()
-    valid = [r for r in results if r.pose_valid and r.pose is not None]
-    estimate = Trajectory(
-        np.array([r.timestamp for r in valid], dtype=np.float64),
-        np.array([r.pose.T_world_cam for r in valid if r.pose is not None]).reshape(-1, 4, 4),
-    )
+            assert spec.source is not None  # the manifest validated it
+            run_input = open_input(spec.source, camera=spec.camera, ground_truth=spec.ground_truth)
+            if run_input.ground_truth is None:
+                raise EvaluationError(f"sequence {spec.name}: no ground truth (give ground_truth)")
+            truth = run_input.ground_truth
+            with open_tracker(config, provider(), run_input) as tracker:
+                record = track(tracker, run_input, selection=FrameSelection(max_frames=spec.frames))
+    if record.failure is not None:  # not a result: a bad frame, or a bug
+        raise record.failure
+    if record.interrupted:  # Ctrl-C: a partial run is not a row of the table
+        raise KeyboardInterrupt
+    results, keyframes = record.results, record.num_keyframes
+    estimate = record.trajectory()
+    valid = estimate.poses
     ate = rpe_t = rpe_r = None
     error = None
     try:
@@ -152,7 +147,8 @@ def run_sequence(
     except KVTrackerError as exc:
         error = f"{type(exc).__name__}: {exc}"
     result = SequenceResult(
-        spec.name, config_name, spec.simulated is not None, len(results), len(valid), keyframes,
+        spec.name, config_name, backend_label if spec.simulated is None else "simulated",
+        spec.simulated is not None, len(results), len(valid), keyframes,
         ate, rpe_t, rpe_r, error, time.perf_counter() - start, worker, model_loads(),
     )
     folder = out_dir / spec.name / config_name

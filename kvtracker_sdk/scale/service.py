@@ -78,7 +78,9 @@ class TrackerHost:
     frames are processed in the order they arrive (the tracker serialises them)."""
 
     def __init__(self, model_json: str | None = None, *, threads: int = 1) -> None:
-        self._models = ModelCache(ModelSpec.model_validate_json(model_json) if model_json else None)
+        # model_json: a backend spec (runs.backends.BackendSpec: kind, weights, dtype, options)
+        self._models = ModelCache(ModelSpec.model_validate_json(model_json) if model_json else None,
+                                  threads=threads)
         self._threads = threads
         self._sessions: dict[str, Tracker] = {}
         self._lock = threading.Lock()
@@ -91,10 +93,13 @@ class TrackerHost:
         config: dict[str, Any] | None = None,
         map_path: str | None = None,
         simulated: dict[str, Any] | None = None,
+        camera: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
         """Start a session (fresh, or relocalising against the map at ``map_path``). A simulated
-        session gives its ``simulated`` spec; others run on this host's model."""
-        from kvtracker_sdk.tracking.tracker import Tracker
+        session gives its ``simulated`` spec; others run on this host's model. ``camera``: the
+        stream's intrinsics as ``Camera.to_dict()`` gives them (its frames are undistorted)."""
+        from kvtracker_sdk.geometry.camera import Camera
+        from kvtracker_sdk.runs.session import open_tracker
 
         with self._lock:
             if session_id in self._sessions:
@@ -104,11 +109,9 @@ class TrackerHost:
             if simulated is not None
             else self._models.get()
         )
-        tracker = (
-            Tracker.from_map(map_path, backend, config)
-            if map_path is not None
-            else Tracker(config or {}, backend)
-        )
+        intrinsics = Camera.from_dict(camera) if camera is not None else None
+        tracker = open_tracker(config if map_path is not None else (config or {}), backend,
+                               camera=intrinsics, load_map=map_path)
         with self._lock:
             if session_id in self._sessions:  # opened concurrently meanwhile
                 tracker.close()

@@ -38,6 +38,7 @@ import numpy as np
 from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import (
     BBoxError,
+    ConfigError,
     ImageDtypeError,
     ImageShapeError,
     InputError,
@@ -65,6 +66,7 @@ __all__ = [
     "check_image",
     "check_mask",
     "check_time_order",
+    "family_preprocessing",
     "resolve_resolution",
     "to_rgb",
 ]
@@ -177,10 +179,25 @@ def _check_timestamp(timestamp: Any) -> float | None:
     return value
 
 
-def resolve_resolution(config: TrackerConfig, family: str) -> TrackerConfig:
+def family_preprocessing(family: str, declared: Any = None) -> Preprocessing:
+    """The preprocessing of a backend: the one it declares (its ``preprocessing`` attribute, a
+    :class:`Preprocessing`), else the one registered for its ``family``; ConfigError if neither."""
+    if declared is None:
+        return for_family(family)
+    if not isinstance(declared, Preprocessing):
+        raise ConfigError(
+            f"a backend's 'preprocessing' must be a kvtracker_sdk.preprocess.Preprocessing, got "
+            f"{type(declared).__name__}"
+        )
+    return declared
+
+
+def resolve_resolution(
+    config: TrackerConfig, family: str, declared: Preprocessing | None = None
+) -> TrackerConfig:
     """``config`` with its resolution set: unset (None) means the family's default (Pi3 308,
-    DA3 504). Raises ConfigError for a family without a registered preprocessing."""
-    preprocessing = for_family(family)
+    DA3 504). Raises ConfigError for a family without a registered or declared preprocessing."""
+    preprocessing = family_preprocessing(family, declared)
     if config.resolution is not None:
         return config
     return config.updated(resolution=preprocessing.default_resolution)
@@ -189,13 +206,16 @@ def resolve_resolution(config: TrackerConfig, family: str) -> TrackerConfig:
 class FramePreparer:
     """Turns user frames into ``PreparedFrame``s for one tracker configuration.
 
-    ``family``: the backend's model family, which picks the preprocessing of new maps; a frame
-    for a loaded map made by another preprocessing is prepared with that map's (``prepare``).
+    ``family``: the backend's model family, which picks the preprocessing of new maps (unless
+    the backend ``declared`` its own); a frame for a loaded map made by another preprocessing is
+    prepared with that map's (``prepare``).
     """
 
-    def __init__(self, config: TrackerConfig, *, patch_size: int, family: str) -> None:
-        self.preprocessing: Preprocessing = for_family(family)
-        self.config = resolve_resolution(config, family)
+    def __init__(
+        self, config: TrackerConfig, *, patch_size: int, family: str, declared: Any = None
+    ) -> None:
+        self.preprocessing: Preprocessing = family_preprocessing(family, declared)
+        self.config = resolve_resolution(config, family, self.preprocessing)
         self.patch_size = int(patch_size)
         self._undistort = Undistorter()
 
@@ -204,6 +224,13 @@ class FramePreparer:
         """The side d of the model input (its meaning is the preprocessing's)."""
         assert self.config.resolution is not None  # resolved in __init__
         return self.config.resolution
+
+    def pipeline(self, name: str | None) -> Preprocessing:
+        """The preprocessing called ``name`` (None: this tracker's, for new maps); a declared one
+        is found by its name too, registered or not."""
+        if name is None or name == self.preprocessing.name:
+            return self.preprocessing
+        return named(name)
 
     def model_size(
         self, input_size: tuple[int, int], preprocessing: Preprocessing | None = None
@@ -232,7 +259,7 @@ class FramePreparer:
         (None: no map, use the family's). ``camera``: the frame's intrinsics (its size must be
         the image's); a camera with distortion has the frame undistorted first.
         """
-        pipeline = self.preprocessing if map_preprocessing is None else named(map_preprocessing)
+        pipeline = self.pipeline(map_preprocessing)
         checked = check_image(image, min_side=self.patch_size)
         size = (int(checked.shape[0]), int(checked.shape[1]))
         if session_input_size is not None and size != tuple(session_input_size):

@@ -175,16 +175,20 @@ def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> Trac
 
 
 def load_tracker_map(
-    path: PathLike, backend_info: BackendInfo, config: ConfigOverride = None
+    path: PathLike, backend_info: BackendInfo, config: ConfigOverride = None, *,
+    backend_preprocessing: str | None = None,
 ) -> LoadedTrackerMap:
     """Load and verify the map at ``path`` for the backend described by ``backend_info``.
+    ``backend_preprocessing``: the name of the preprocessing the backend declares (known even
+    when it is not registered).
 
     Raises the map errors of ``io/map_file`` (format, version, model mismatch — checked before
     the tensor data is read —, corruption, I/O) and those of :func:`resolve_config`.
     """
     source = str(path)
     loaded = load_map(path, expected_backend=backend_info)
-    if loaded.info.preprocessing not in PREPROCESSINGS:
+    known = loaded.info.preprocessing in PREPROCESSINGS
+    if not known and loaded.info.preprocessing != backend_preprocessing:
         raise MapVersionError(
             f"{source}: its frames were prepared by {loaded.info.preprocessing!r}, which this SDK "
             f"does not know (known: {sorted(PREPROCESSINGS)}); upgrade kvtracker-sdk"

@@ -46,7 +46,12 @@ from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking import persistence
 from kvtracker_sdk.tracking.depth_input import check_depth, depth_to_model
 from kvtracker_sdk.tracking.events import EventBus, EventSource
-from kvtracker_sdk.tracking.frame_input import FramePreparer, check_time_order, to_rgb
+from kvtracker_sdk.tracking.frame_input import (
+    FramePreparer,
+    check_time_order,
+    family_preprocessing,
+    to_rgb,
+)
 from kvtracker_sdk.tracking.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
@@ -95,7 +100,8 @@ class Tracker(EventSource):
     ) -> None:
         cfg = config if isinstance(config, TrackerConfig) else TrackerConfig.from_dict(config or {})
         self._preparer = FramePreparer(
-            cfg, patch_size=backend.info.patch_size, family=backend.info.family
+            cfg, patch_size=backend.info.patch_size, family=backend.info.family,
+            declared=getattr(backend, "preprocessing", None),
         )
         cfg = self._preparer.config  # an unset resolution becomes the family's default
         _check_cache_dtype(cfg, backend.info)
@@ -153,7 +159,9 @@ class Tracker(EventSource):
         prepared its way). Extending it otherwise raises ``MapPreprocessingError``.
         ``camera``: this session's intrinsics; when they differ from the map's saved ones a
         WARNING ``map_camera_mismatch`` is logged (``persistence.check_map_camera``)."""
-        loaded = persistence.load_tracker_map(path, backend.info, config)
+        loaded = persistence.load_tracker_map(
+            path, backend.info, config, backend_preprocessing=family_preprocessing(
+                backend.info.family, getattr(backend, "preprocessing", None)).name)
         persistence.check_map_camera(loaded.info, camera, str(path))
         tracker = cls(loaded.config, backend, camera=camera)
         tracker._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
@@ -286,7 +294,9 @@ class Tracker(EventSource):
         if map is None:
             self.reset()
             return
-        loaded = persistence.load_tracker_map(map, self.backend.info, self._config)
+        loaded = persistence.load_tracker_map(
+            map, self.backend.info, self._config,
+            backend_preprocessing=self._preparer.preprocessing.name)
         persistence.check_map_camera(loaded.info, self._camera, str(map))
         self._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
 

@@ -126,3 +126,25 @@ def test_undistortion_straightens_what_the_lens_bent() -> None:
     assert Undistorter()(image, camera.undistorted()) is image
     with pytest.raises(InputError, match="does not match"):
         Undistorter()(image[:10], camera)
+
+
+def test_pinhole_intrinsics_is_a_deprecated_name_of_camera() -> None:
+    import kvtracker_sdk
+    from kvtracker_sdk.io import intrinsics
+
+    with pytest.warns(DeprecationWarning, match="use kvtracker_sdk.Camera"):
+        old = intrinsics.PinholeIntrinsics
+    assert old is Camera
+    with pytest.warns(DeprecationWarning):
+        assert kvtracker_sdk.PinholeIntrinsics is Camera
+
+
+def test_resized_keeps_the_lens_and_scales_k_exactly() -> None:
+    camera = Camera(520.9, 521.0, 325.1, 249.7, 640, 480, (0.2312, -0.7849, -0.0033, -0.0001, 0.9172))
+    half = camera.resized(320, 240)
+    assert half.distortion == camera.distortion and half.size == (240, 320)
+    # pixel centres at integers: u' = (u + 0.5) / 2 - 0.5
+    assert (half.fx, half.cx) == (camera.fx / 2, (camera.cx + 0.5) / 2 - 0.5)
+    rays = half.rays()
+    assert rays.shape == (240, 320, 3)
+    np.testing.assert_allclose(half.project(rays[7, 11][None]), [[11.0, 7.0]], atol=1e-12)

@@ -15,8 +15,9 @@ import pytest
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import InputError
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.io.colmap_text import write_colmap_text
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics, estimate_intrinsics
+from kvtracker_sdk.io.intrinsics import estimate_intrinsics
 from kvtracker_sdk.io.nerfstudio import write_nerfstudio
 from kvtracker_sdk.io.reconstruction import Reconstruction, reconstruction_from_map
 from tests.cli.invoke import invoke
@@ -102,7 +103,7 @@ def test_nerfstudio_cameras_look_along_the_poses(
 
 
 def test_intrinsics_estimate_and_resize() -> None:
-    truth = PinholeIntrinsics(200.0, 200.0, 125.5, 90.5, 252, 182)
+    truth = Camera(200.0, 200.0, 125.5, 90.5, 252, 182)
     depth = np.random.default_rng(0).uniform(1.0, 3.0, (182, 252, 1))
     points = truth.rays() * depth
     fitted = estimate_intrinsics(points)
@@ -110,7 +111,7 @@ def test_intrinsics_estimate_and_resize() -> None:
     doubled = truth.resized(504, 364)  # pixel centres: c' = 2 c + 0.5
     assert (doubled.fx, doubled.cx, doubled.cy) == (400.0, 251.5, 181.5)
     with pytest.raises(InputError):
-        PinholeIntrinsics(-1.0, 1.0, 0.0, 0.0, 10, 10)
+        Camera(-1.0, 1.0, 0.0, 0.0, 10, 10)
 
 
 def test_demo_run_exports_through_the_cli(tmp_path: Path) -> None:

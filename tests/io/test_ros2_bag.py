@@ -12,8 +12,8 @@ import pytest
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import ConfigError, InputError
+from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
-from kvtracker_sdk.io.intrinsics import PinholeIntrinsics
 from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
 from kvtracker_sdk.types import FrameResult
 from tests.helpers import dev_dependency
@@ -180,13 +180,13 @@ def test_extrinsic_and_intrinsics_are_configurable(
     results, keyframe_map = run
     T_base_optical = DEFAULT_T_BASE_OPTICAL.copy()
     T_base_optical[:3, 3] = [0.1, 0.0, 0.3]  # camera 10 cm ahead, 30 cm up
-    camera = PinholeIntrinsics(520.9, 521.0, 325.1, 249.7, 640, 480)
+    camera = Camera(520.9, 521.0, 325.1, 249.7, 640, 480)
     write_ros2_bag(tmp_path / "bag", results[:30], keyframe_map, image_size=(640, 480),
                    T_base_optical=T_base_optical, intrinsics=camera)
     messages = _read(tmp_path / "bag")
     static = messages["/tf_static"][0][1].transforms[0].transform.translation
     assert (static.x, static.y, static.z) == (0.1, 0.0, 0.3)
-    np.testing.assert_array_equal(messages["/camera/camera_info"][0][1].k.reshape(3, 3), camera.K)
+    np.testing.assert_array_equal(messages["/camera/camera_info"][0][1].k.reshape(3, 3), camera.K())
     with pytest.raises(ConfigError, match="exists"):
         write_ros2_bag(tmp_path / "bag", results, keyframe_map, image_size=(640, 480))
     with pytest.raises(InputError, match="rigid"):

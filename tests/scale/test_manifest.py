@@ -29,7 +29,7 @@ def test_relative_paths_resolve_against_the_manifest_folder(tmp_path: Path) -> N
     }
     manifest = load_manifest(_write(tmp_path, document))
     base = tmp_path.resolve()
-    assert manifest.model is not None and manifest.model.weights == base / "w/model.safetensors"
+    assert manifest.model is not None and manifest.model.weights == str(base / "w/model.safetensors")
     real = manifest.sequences[1]
     assert (real.source, real.ground_truth) == (base / "seq", base / "seq/gt.txt")
     sim = manifest.sequences[2].simulated

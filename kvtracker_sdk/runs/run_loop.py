@@ -1,7 +1,8 @@
-"""The frame loop shared by ``kvtracker track`` and ``kvtracker demo``, and what it records.
+"""The frame loop every entry point runs (``kvtracker track`` and ``demo``, ``eval-many`` on each
+engine, an app's own loop through ``runs.track``), and what it records.
 
-``run_frames`` pushes frames into a tracker, feeds the progress bar and the optional rerun sink,
-and returns a :class:`RunRecord`: every frame result, every state change, and per-stage timings
+``run_frames`` pushes frames into a tracker, feeds an optional progress display and the optional
+per-frame hooks (the CLI's rerun sink, live view), and returns a :class:`RunRecord`: every frame result, every state change, and per-stage timings
 (``source``: reading or rendering the frame; the tracker's own ``preprocess``/``track``/``map``;
 ``sink``: rerun logging). A Ctrl-C ends the loop cleanly: the first one lets the current frame
 finish (the tracker is never cut off in the middle of a frame), a second one stops at once; the
@@ -23,11 +24,10 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from types import FrameType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from kvtracker_sdk.cli.progress import FrameProgress
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.io.trajectory import Trajectory
 from kvtracker_sdk.log import get_logger
@@ -37,10 +37,24 @@ if TYPE_CHECKING:  # the tracker pulls in torch: imported by the commands when t
     from kvtracker_sdk.tracking.events import KeyframeEvent, StateChangeEvent
     from kvtracker_sdk.tracking.tracker import Tracker
 
-__all__ = ["BadFrame", "BadFramePolicy", "InputFrame", "RunRecord", "StageStats", "run_frames"]
+__all__ = [
+    "BadFrame",
+    "BadFramePolicy",
+    "InputFrame",
+    "ProgressDisplay",
+    "RunRecord",
+    "StageStats",
+    "run_frames",
+]
 
 _log = get_logger(__name__)
 _BAD_FRAMES_LISTED = 50  # run.json lists the first bad frames; the count covers all of them
+
+
+class ProgressDisplay(Protocol):
+    """What the loop tells a progress display after every frame (the CLI's progress bar)."""
+
+    def update(self, result: FrameResult, num_keyframes: int) -> None: ...
 
 
 class BadFramePolicy(str, enum.Enum):
@@ -112,6 +126,7 @@ class RunRecord:
     bad_frame_policy: BadFramePolicy = BadFramePolicy.STOP
     bad_frames: list[BadFrame] = field(default_factory=list)
     failure: Exception | None = None  # what ended the run early (a bad frame under STOP, ...)
+    num_keyframes: int = 0  # the map's keyframes once the loop ended (rebuilds collected)
 
     def add_sample(self, stage: str, milliseconds: float) -> None:
         self.stage_samples.setdefault(stage, []).append(milliseconds)
@@ -164,7 +179,7 @@ FrameHook = Callable[[int, InputFrame, FrameResult], None]
 def run_frames(
     tracker: Tracker,
     frames: Iterable[InputFrame],
-    progress: FrameProgress,
+    progress: ProgressDisplay | None = None,
     *,
     before_frame: Callable[[int, InputFrame], None] | None = None,
     after_frame: FrameHook | None = None,
@@ -210,7 +225,8 @@ def run_frames(
                 sink_start = time.perf_counter()
                 after_frame(index, frame, result)
                 record.add_sample("sink", (time.perf_counter() - sink_start) * 1e3)
-            progress.update(result, tracker.map_status.num_keyframes)
+            if progress is not None:
+                progress.update(result, tracker.map_status.num_keyframes)
             if stop.requested:
                 break
     except KeyboardInterrupt:  # a second Ctrl-C, or one outside a frame (e.g. in the source)
@@ -228,6 +244,7 @@ def run_frames(
             tracker.unregister(subscription)
     if not record.interrupted and record.failure is None:
         tracker.wait_for_map(timeout=None)  # an asynchronous rebuild still running belongs in the map
+    record.num_keyframes = tracker.map_status.num_keyframes
     return record
 
 

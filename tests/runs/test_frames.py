@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.cli.inputs import FrameSelection, MaskFolder, parse_bbox, read_frames
 from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError, TrajectoryError
 from kvtracker_sdk.io.sources import ImageFolderSource
 from kvtracker_sdk.io.trajectory import read_trajectory
+from kvtracker_sdk.runs.frames import FrameSelection, MaskFolder, parse_bbox, read_frames
 
 
 @pytest.fixture

@@ -1,7 +1,9 @@
-"""What ``kvtracker track`` reads: frames from INPUT, and object masks or a box for object mode.
+"""The frames a run tracks: a source's selected frames, with object masks or a box in object mode.
 
-INPUT is opened by ``kvtracker_sdk.io.sources.open_source`` (video, image folder, TUM folder,
-7-Scenes folder). Object mode needs, per frame, a mask or a box:
+Every entry point reads its frames here (``runs.track``), so ``kvtracker track``, ``eval-many``
+and an app's loop push the same frames. The source is opened by ``runs.inputs.open_input``
+(video, image folder, TUM folder, 7-Scenes folder, camera, stream, iterable). Object mode needs,
+per frame, a mask or a box:
 
 - ``--masks DIR``: one mask image per frame, matched by position in natural order (``2.png``
   before ``10.png``); non-zero pixels are the object. Their count must cover the frames used.
@@ -23,11 +25,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kvtracker_sdk.cli.run_loop import InputFrame
 from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError
 from kvtracker_sdk.io.depth_frames import DepthFolder
 from kvtracker_sdk.io.regular_file import read_regular_bytes
 from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
+from kvtracker_sdk.runs.run_loop import InputFrame
 
 __all__ = ["FrameSelection", "MaskFolder", "parse_bbox", "read_frames"]
 
