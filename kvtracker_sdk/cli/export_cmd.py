@@ -52,10 +52,10 @@ def export(
     ] = None,
     camera: Annotated[Path | None, typer.Option(
         help="Calibration file (JSON/YAML: fx fy cx cy width height distortion, or ROS "
-        "CameraInfo), instead of --intrinsics.")] = None,
+        "CameraInfo), instead of --intrinsics. [default: none]")] = None,
     force_fitted_focal: Annotated[bool, typer.Option(
         "--force-fitted-focal", help="Export a fitted focal even when it is implausible (under "
-        "a tenth of the image width).")] = False,
+        "a tenth of the image width). [default: off]")] = False,
     min_confidence: Annotated[float, typer.Option(help="Confidence filter of the points.")] = 0.5,
     pixel_stride: Annotated[int, typer.Option(
         help="Keep every N-th keyframe pixel in each direction as a point.")] = 2,

@@ -129,6 +129,8 @@ _CODES: tuple[tuple[type[BaseException], ExitCode, Hint], ...] = (
         "a frame file is damaged or not an image: replace it, or pass --on-bad-frame skip to go "
         "on without it",
     ),
+    (errors.IntrinsicsError, ExitCode.INPUT, "pass the camera: --camera FILE (JSON/YAML or ROS "
+     "CameraInfo) or --intrinsics fx,fy,cx,cy,W,H; --force-fitted-focal exports the fit anyway"),
     (errors.SourceError, ExitCode.INPUT, _INPUT_KINDS),
     (
         errors.ImageShapeError,

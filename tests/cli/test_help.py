@@ -91,6 +91,6 @@ def test_eval_many_help_shows_the_example_manifest_and_the_examples_are_valid() 
     assert '"name"' in block and "examples/manifests/simulated.json" in " ".join(shown.split())
     both = load_manifest(example)
     assert [s.source is not None for s in both.sequences] == [True, False]  # real, simulated
-    assert both.model is not None and both.model.weights.is_absolute()  # relative to the file
+    assert both.model is not None and Path(both.model.weights).is_absolute()  # relative to the file
     offline = load_manifest(examples / "simulated.json")
     assert offline.model is None and all(s.simulated for s in offline.sequences)

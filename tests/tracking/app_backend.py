@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from kvtracker_sdk import BackendInfo, HeadSet, KVCache, MapResult, TrackResult
+from kvtracker_sdk.backends.base import BackendInfo, HeadSet, KVCache, MapResult, TrackResult
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.preprocess import PI3_KVTRACKER, Preprocessing
 
