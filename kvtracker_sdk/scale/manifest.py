@@ -15,22 +15,54 @@ A *real* sequence is any source ``kvtracker track`` reads (video, image folder, 
 folder) with a ground-truth trajectory (given, or shipped by the source). A *simulated* sequence
 drives ``SimulatedBackend`` over a ground-truth trajectory (a TUM file or a generated orbit): it
 needs no weights. Every sequence runs once per configuration.
+
+The file is read with ``user_files`` (regular files only, at most 1 MB, bounded nesting, safe
+YAML with alias-bomb protection) and every number is checked against a plausible range (frame
+counts up to ``MAX_FRAMES``, rendered sizes, noise, threads): ``ConfigError`` naming the field.
+Sequence and config names become folder names under ``--out``: letters, digits, ``_``, ``-``
+and ``.``, never ``.`` or ``..`` (``safe_name``).
 """
 
 from __future__ import annotations
 
-import json
+import re
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from kvtracker_sdk.backends.simulated_scene import MAX_FRAMES
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.user_files import load_user_document
 
-__all__ = ["EvalManifest", "ModelSpec", "SequenceSpec", "SimulatedSpec", "load_manifest"]
+__all__ = [
+    "MAX_FRAMES",
+    "EvalManifest",
+    "ModelSpec",
+    "SequenceSpec",
+    "SimulatedSpec",
+    "load_manifest",
+    "safe_name",
+]
 
 _MAX_MANIFEST_BYTES = 1 << 20  # a manifest lists sequences; anything larger is not one
+_MAX_SEQUENCES = 10_000
+_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+_MAX_SIDE = 4096  # rendered frame side (px); the networks run at a few hundred
+_SEED_MAX = 2**63 - 1  # numpy's generators take a non-negative 64-bit seed
+
+
+def safe_name(name: object, field: str = "name") -> str:
+    """``name`` if it can be one folder name under an output folder: 1-64 letters, digits,
+    ``_``, ``-`` or ``.``, and not ``.`` or ``..``; ``ConfigError`` naming ``field`` otherwise.
+    (No separator, no absolute path, no parent: a joined path stays inside the folder.)"""
+    if not isinstance(name, str) or not _NAME.fullmatch(name) or name in (".", ".."):
+        raise ConfigError(
+            f"{field} {name!r:.80} must be 1-64 letters, digits, '_', '-' or '.' "
+            "(and not '.' or '..'): it names a folder inside --out"
+        )
+    return name
 
 
 class _Strict(BaseModel):
@@ -42,37 +74,57 @@ class ModelSpec(_Strict):
     through a task queue or an object store: each worker loads it once)."""
 
     weights: Path
-    dtype: str = "float32"
+    dtype: str = Field(default="float32", pattern=r"^(float32|float16|bfloat16|float64)$")
 
 
 class SimulatedSpec(_Strict):
     """A simulated camera: ``ground_truth`` (TUM file) or a generated orbit of ``orbit_frames``."""
 
     ground_truth: Path | None = None
-    frames: int | None = Field(default=None, ge=1)  # first N poses of the ground truth
-    orbit_frames: int | None = Field(default=None, ge=2)
-    orbit_turns: float = Field(default=1.0, gt=0)
-    size: tuple[int, int] = (196, 252)  # rendered frame HxW (Pi3's model size at d=224: no resize)
-    noise_cm: float = Field(default=1.0, ge=0)
-    noise_deg: float = Field(default=0.3, ge=0)
-    loss: tuple[int, int] | None = None  # frames [start, stop) with the camera covered
-    seed: int = 0
+    # first N poses of the ground truth
+    frames: int | None = Field(default=None, ge=1, le=MAX_FRAMES, strict=True)
+    orbit_frames: int | None = Field(default=None, ge=2, le=MAX_FRAMES, strict=True)
+    orbit_turns: float = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False)
+    # rendered frame HxW (Pi3's model size at d=224: no resize)
+    size: tuple[
+        Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
+        Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
+    ] = (196, 252)
+    noise_cm: float = Field(default=1.0, ge=0, le=1000, allow_inf_nan=False)  # up to 10 m
+    noise_deg: float = Field(default=0.3, ge=0, le=180, allow_inf_nan=False)
+    # frames [start, stop) with the camera covered
+    loss: tuple[
+        Annotated[int, Field(ge=0, le=MAX_FRAMES, strict=True)],
+        Annotated[int, Field(ge=0, le=MAX_FRAMES, strict=True)],
+    ] | None = None
+    seed: int = Field(default=0, ge=0, le=_SEED_MAX, strict=True)
 
     @model_validator(mode="after")
     def _one_trajectory(self) -> SimulatedSpec:
         if (self.ground_truth is None) == (self.orbit_frames is None):
             raise ValueError("give exactly one of ground_truth and orbit_frames")
+        if self.loss is not None and self.loss[0] >= self.loss[1]:
+            raise ValueError(f"loss [start, stop) needs start < stop, got {list(self.loss)}")
         return self
 
 
 class SequenceSpec(_Strict):
     """One sequence: a real ``source`` with its ``ground_truth``, or a ``simulated`` camera."""
 
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")  # a folder under --out: safe_name
     source: Path | None = None
     ground_truth: Path | None = None
-    frames: int | None = Field(default=None, ge=1)  # first N frames of the source
+    # first N frames of the source
+    frames: int | None = Field(default=None, ge=1, le=10_000_000, strict=True)
     simulated: SimulatedSpec | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _folder_name(cls, name: str) -> str:
+        try:
+            return safe_name(name, "sequence name")
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from exc
 
     @model_validator(mode="after")
     def _real_or_simulated(self) -> SequenceSpec:
@@ -90,10 +142,10 @@ class EvalManifest(_Strict):
 
     model: ModelSpec | None = None
     configs: dict[str, dict[str, Any]] = Field(default_factory=_default_configs)
-    sequences: tuple[SequenceSpec, ...] = Field(min_length=1)
+    sequences: tuple[SequenceSpec, ...] = Field(min_length=1, max_length=_MAX_SEQUENCES)
     # torch threads per task: results are bit-identical whatever engine runs them only when
     # every run uses the same thread count (reductions split differently otherwise)
-    threads_per_task: int = Field(default=1, ge=1)
+    threads_per_task: int = Field(default=1, ge=1, le=1024, strict=True)
 
     @model_validator(mode="after")
     def _checked(self) -> EvalManifest:
@@ -102,10 +154,15 @@ class EvalManifest(_Strict):
             raise ValueError(f"sequence names must be unique, got {names}")
         if any(s.source is not None for s in self.sequences) and self.model is None:
             raise ValueError("real sequences need a model (model.weights)")
+        if not self.configs:
+            raise ValueError("configs must name at least one configuration")
         for name, overrides in self.configs.items():
-            if not name or not name.replace("_", "").replace("-", "").isalnum():
-                raise ValueError(f"config name {name!r}: letters, digits, '-' and '_' only")
-            TrackerConfig.from_dict(overrides)  # ConfigError now, not in a worker later
+            if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", name):
+                raise ValueError(f"config name {name!r:.80}: 1-64 letters, digits, '-' and '_' only")
+            try:
+                TrackerConfig.from_dict(overrides)  # ConfigError now, not in a worker later
+            except ConfigError as exc:
+                raise ValueError(f"configs.{name}: {exc}") from exc
         return self
 
     def tracker_config(self, name: str) -> TrackerConfig:
@@ -117,8 +174,12 @@ class EvalManifest(_Strict):
 
 
 def _resolve(document: Any, base: Path) -> Any:
-    """Relative paths in the known path fields, made absolute against ``base``."""
-    for sequence in document.get("sequences", []) if isinstance(document, dict) else []:
+    """Relative paths in the known path fields, made absolute against ``base``. Fields of the
+    wrong type are left as they are, for the schema to name."""
+    if not isinstance(document, dict):
+        return document
+    sequences = document.get("sequences")
+    for sequence in sequences if isinstance(sequences, list) else []:
         if not isinstance(sequence, dict):
             continue
         for key in ("source", "ground_truth"):
@@ -127,42 +188,27 @@ def _resolve(document: Any, base: Path) -> Any:
         simulated = sequence.get("simulated")
         if isinstance(simulated, dict) and isinstance(simulated.get("ground_truth"), str):
             simulated["ground_truth"] = str(base / simulated["ground_truth"])
-    model = document.get("model") if isinstance(document, dict) else None
+    model = document.get("model")
     if isinstance(model, dict) and isinstance(model.get("weights"), str):
         model["weights"] = str(base / model["weights"])
     return document
 
 
+def _describe(exc: ValidationError) -> str:
+    """Each error's field path and message, kept short (a value is never echoed in full)."""
+    parts = []
+    for error in exc.errors(include_url=False, include_input=False)[:10]:
+        field = ".".join(str(part) for part in error["loc"]) or "(document)"
+        parts.append(f"{field}: {str(error['msg'])[:300]}")
+    return "; ".join(parts)
+
+
 def load_manifest(path: str | Path) -> EvalManifest:
-    """Read and validate a manifest (JSON, or YAML if PyYAML is installed). ConfigError if bad."""
-    target = Path(path)
-    try:
-        if not target.is_file():
-            raise ConfigError(f"manifest {target}: not a regular file")
-        if target.stat().st_size > _MAX_MANIFEST_BYTES:
-            raise ConfigError(f"manifest {target}: larger than {_MAX_MANIFEST_BYTES} bytes")
-        text = target.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise ConfigError(f"manifest {target}: cannot read it ({exc})") from exc
-    try:
-        if target.suffix.lower() in (".yaml", ".yml"):
-            document = _load_yaml(target, text)
-        else:
-            document = json.loads(text)
-    except (ValueError, RecursionError) as exc:
-        raise ConfigError(f"manifest {target}: not valid JSON/YAML ({exc})") from exc
+    """Read and validate a manifest (JSON, or YAML if PyYAML is installed). ConfigError, naming
+    the field, if it is not a regular file, too large, malformed or holds a value out of range."""
+    document = load_user_document(path, ConfigError, what="manifest", max_bytes=_MAX_MANIFEST_BYTES)
+    target = Path(path)  # load_user_document checked its type
     try:
         return EvalManifest.model_validate(_resolve(document, target.parent.resolve()))
     except ValidationError as exc:
-        raise ConfigError(f"manifest {target}: {exc}") from exc
-
-
-def _load_yaml(target: Path, text: str) -> Any:
-    try:
-        import yaml  # optional: PyYAML
-    except ImportError as exc:
-        raise ConfigError(f"manifest {target}: YAML needs PyYAML (pip install pyyaml)") from exc
-    try:
-        return yaml.safe_load(text)  # safe_load: never constructs Python objects
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"manifest {target}: not valid YAML ({exc})") from exc
+        raise ConfigError(f"manifest {target}: {_describe(exc)}") from exc
