@@ -20,15 +20,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import EvaluationError, KVTrackerError
+from kvtracker_sdk.errors import ConfigError, EvaluationError, KVTrackerError
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.trajectory import Trajectory, read_trajectory, write_tum
-from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec
+from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec, safe_name
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
 
-__all__ = ["BackendProvider", "SequenceResult", "run_sequence", "simulated_sequence", "torch_threads"]
+__all__ = [
+    "BackendProvider",
+    "SequenceResult",
+    "output_folder",
+    "run_sequence",
+    "simulated_sequence",
+    "torch_threads",
+]
 
 BackendProvider = Callable[[], "Backend"]  # the worker's model, loaded at most once
 
@@ -108,6 +115,16 @@ def _real(
     return provider(), frames, truth
 
 
+def output_folder(out_dir: Path, sequence: str, config: str) -> Path:
+    """``out_dir/<sequence>/<config>``, the names validated (``safe_name``), never joined raw: a
+    name ``..``, an absolute path or one with a separator would put files outside ``out_dir``."""
+    folder = Path(out_dir) / safe_name(sequence, "sequence name") / safe_name(config, "config name")
+    root = Path(out_dir).resolve()
+    if not folder.resolve().is_relative_to(root):  # a symlink inside out_dir leading out
+        raise ConfigError(f"output folder {folder} leads outside --out {root}")
+    return folder
+
+
 def run_sequence(
     spec: SequenceSpec,
     config_name: str,
@@ -125,6 +142,7 @@ def run_sequence(
     from kvtracker_sdk.eval.report import evaluate_trajectories
     from kvtracker_sdk.tracking.tracker import Tracker
 
+    folder = output_folder(out_dir, spec.name, config_name)  # before any work: a bad name fails fast
     start = time.perf_counter()
     with torch_threads(threads):
         if spec.simulated is not None:
@@ -155,7 +173,6 @@ def run_sequence(
         spec.name, config_name, spec.simulated is not None, len(results), len(valid), keyframes,
         ate, rpe_t, rpe_r, error, time.perf_counter() - start, worker, model_loads(),
     )
-    folder = out_dir / spec.name / config_name
     folder.mkdir(parents=True, exist_ok=True)
     if len(valid):
         write_tum(folder / "trajectory.txt", estimate)
