@@ -92,6 +92,8 @@ class FrameLoop:
         """Process frame ``index`` and publish the new snapshot."""
         self.collect(index, timings)
         step = self._process(frame, index, timings)
+        if step.valid and (step.pose is None or not np.all(np.isfinite(step.pose.T_world_cam))):
+            step = step._replace(valid=False)  # last line: a non-finite pose is never valid
         tracked = self.snapshot.pose
         if step.valid and step.pose is not None:
             tracked = TrackedPose(step.pose, index, frame.timestamp)
@@ -146,6 +148,11 @@ class FrameLoop:
             pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
         except ValueError as exc:  # a malformed pose from the backend
             raise TrackingFailedError(f"tracking frame {index} returned a bad pose") from exc
+        if not np.all(np.isfinite(pose.T_world_cam)):  # a finite raw pose times a huge gauge
+            raise TrackingFailedError(
+                f"tracking frame {index}: the world pose is not finite (map gauge "
+                f"scale {kf_map.gauge.scale!r})"
+            )
         self._failed_tracks_in_row = 0
         return pose, frame_confidence(tracked.confidence, tracked.confidence_map, frame.mask)
 
