@@ -169,10 +169,11 @@ def load_user_document(
 ) -> Any:
     """The JSON (or, for ``.yaml``/``.yml``, YAML) document in ``path``, read with the guarantees
     of the module docstring. Values are not checked: that is the caller's schema."""
-    text = read_user_text(path, error, what=what, max_bytes=max_bytes)
-    label = f"{what} {path}"
+    target = checked_path(path, error, what=what)
+    text = read_user_text(target, error, what=what, max_bytes=max_bytes)
+    label = f"{what} {target}"
     try:
-        if Path(os.fspath(path)).suffix.lower() in (".yaml", ".yml"):  # type: ignore[arg-type]
+        if Path(target).suffix.lower() in (".yaml", ".yml"):
             document = _parse_yaml(text, error, label)
         else:
             document = json.loads(text)

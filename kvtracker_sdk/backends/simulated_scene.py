@@ -20,8 +20,8 @@ that.
 from __future__ import annotations
 
 import functools
-import math
 import io
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
