@@ -6,8 +6,9 @@ served. Checked, before any graph runs:
 
 * ``config_hash`` is the hash of ``config`` (recomputed), and ``patch_size`` is the config's;
 * every graph's inputs and outputs in the manifest are the ones the family derives from that
-  config (names, dtypes and fixed dims: heads, head_dim, widths), and ``layout`` agrees with
-  them (number of cached layers, heads, head_dim);
+  config (names, dtypes and fixed dims: heads, head_dim, widths), and ``layout`` and
+  ``extra_tokens_per_frame`` agree with them (number of cached layers, heads, head_dim;
+  registers or camera token);
 * ``weights_bytes`` is the size of the weights file;
 * each graph *file* has the inputs and outputs of its role (read from the graph itself by the
   runtime that loads it: :func:`check_graph_signatures`), so two files swapped between roles —
@@ -81,6 +82,10 @@ def check_manifest_claims(folder: Path, manifest: OnnxManifest) -> None:
             raise ModelError(f"{source}: field 'graphs.{role}' does not list the inputs and "
                              f"outputs its config gives that graph")
     _check_layout(source, manifest, expected)
+    extra = _extra_tokens(manifest.family, expected)
+    if manifest.extra_tokens_per_frame != extra:
+        raise ModelError(f"{source}: field 'extra_tokens_per_frame' {manifest.extra_tokens_per_frame} "
+                         f"is not its graphs' {extra}")
     try:
         size = (folder / manifest.weights_file).stat().st_size
     except OSError as exc:
@@ -88,6 +93,15 @@ def check_manifest_claims(folder: Path, manifest: OnnxManifest) -> None:
     if size != manifest.weights_bytes:
         raise ModelError(f"{source}: field 'weights_bytes' {manifest.weights_bytes} is not the "
                          f"size of {manifest.weights_file} ({size} bytes)")
+
+
+def _extra_tokens(family: str, expected: Mapping[str, tuple[tuple[TensorSpec, ...], ...]]) -> int:
+    """Tokens per frame besides the patches: Pi3's registers (the decoder's ``hidden_registers``
+    [F, R, 2*dim]); DA3's one camera token."""
+    if family == "pi3":
+        registers = {s.name: s.shape for s in expected["decoder_map"][1]}["hidden_registers"]
+        return int(registers[1])
+    return 1
 
 
 def _check_layout(

@@ -84,14 +84,14 @@ class SimulatedSpec(_Strict):
     # first N poses of the ground truth
     frames: int | None = Field(default=None, ge=1, le=MAX_FRAMES, strict=True)
     orbit_frames: int | None = Field(default=None, ge=2, le=MAX_FRAMES, strict=True)
-    orbit_turns: float = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False)
+    orbit_turns: float = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False, strict=True)
     # rendered frame HxW (Pi3's model size at d=224: no resize)
     size: tuple[
         Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
         Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
     ] = (196, 252)
-    noise_cm: float = Field(default=1.0, ge=0, le=1000, allow_inf_nan=False)  # up to 10 m
-    noise_deg: float = Field(default=0.3, ge=0, le=180, allow_inf_nan=False)
+    noise_cm: float = Field(default=1.0, ge=0, le=1000, allow_inf_nan=False, strict=True)  # up to 10 m
+    noise_deg: float = Field(default=0.3, ge=0, le=180, allow_inf_nan=False, strict=True)
     # frames [start, stop) with the camera covered
     loss: tuple[
         Annotated[int, Field(ge=0, le=MAX_FRAMES, strict=True)],

@@ -145,7 +145,8 @@ class FrameLoop:
         tracked = track_checked(self.backend, frame.image, kf_map.cache, self.config.heads, index)
         self.predicted_K = tracked.intrinsics  # the network's K of the model image, if any
         try:
-            pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow is refused just below
+                pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
         except ValueError as exc:  # a malformed pose from the backend
             raise TrackingFailedError(f"tracking frame {index} returned a bad pose") from exc
         if not np.all(np.isfinite(pose.T_world_cam)):  # a finite raw pose times a huge gauge
