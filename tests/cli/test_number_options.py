@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 from kvtracker_sdk.backends.simulated_scene import MAX_FRAMES
-from kvtracker_sdk.cli.number_options import MAX_SIMULATED_FRAMES
 from tests.cli.invoke import invoke
 
 
@@ -41,4 +40,6 @@ def test_demo_refuses_a_ground_truth_spanning_years(tmp_path: Path) -> None:
 
 
 def test_the_cli_frame_limit_is_the_simulators() -> None:
+    from kvtracker_sdk.cli.number_options import MAX_SIMULATED_FRAMES
+
     assert MAX_SIMULATED_FRAMES == MAX_FRAMES

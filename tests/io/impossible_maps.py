@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from kvtracker_sdk.io.map_file import save_map
-from tests.io.map_factory import TRACKER_CONFIG, backend_info, join_file, make_map, split_file
 from kvtracker_sdk.io.map_format import metadata_digest
+from tests.io.map_factory import TRACKER_CONFIG, backend_info, join_file, make_map, split_file
 
 # (storage, compact keyframes): version 3 and version 2 files of both quantised dtypes
 BASES = (("int8", True), ("int8", False), ("float8_e4m3fn", True), ("float8_e4m3fn", False))

@@ -21,7 +21,7 @@ from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.errors import ConfigError, KVTrackerError, TrajectoryError
 from kvtracker_sdk.io.trajectory import read_trajectory
 from kvtracker_sdk.scale.manifest import SequenceSpec, load_manifest
-from kvtracker_sdk.scale.sequence_run import output_folder, run_sequence
+from kvtracker_sdk.scale.sequence_run import run_sequence
 from tests.hostile_inputs import ground_truth_cases, manifest_cases
 
 DEFAULT_CASES = 200
@@ -112,6 +112,8 @@ def test_an_orbit_of_a_billion_frames_is_refused_before_anything_is_built() -> N
 
 @pytest.mark.parametrize("name", ["..", ".", "/etc", "a/b", "a\\b", "../../x", ""])
 def test_output_folders_from_user_names_stay_inside_out(tmp_path: Path, name: str) -> None:
+    from kvtracker_sdk.scale.sequence_run import output_folder
+
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match="name"):
         output_folder(out, name, "default")
