@@ -49,7 +49,7 @@ def _parse_size(text: str) -> tuple[int, int]:
     except ValueError as exc:
         raise ConfigError(f"--size {text!r}: expected HEIGHTxWIDTH, e.g. 240x320") from exc
     if min(height, width) < 28 or max(height, width) > 4096:
-        raise ConfigError(f"--size {text!r}: frames need 28 to 4096 pixels a side")
+        raise ConfigError(f"--size {text!r}: frames need at least 28 pixels a side (and at most 4096)")
     return height, width
 
 

@@ -31,7 +31,6 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from kvtracker_sdk.backends.simulated_scene import MAX_FRAMES
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.user_files import load_user_document
@@ -47,6 +46,9 @@ __all__ = [
 ]
 
 _MAX_MANIFEST_BYTES = 1 << 20  # a manifest lists sequences; anything larger is not one
+# backends.simulated_scene.MAX_FRAMES, the frames a simulated camera can number (a test pins the
+# two equal): not imported, so that reading a manifest does not load torch
+MAX_FRAMES = 224 * 224
 _MAX_SEQUENCES = 10_000
 _NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 _MAX_SIDE = 4096  # rendered frame side (px); the networks run at a few hundred

@@ -105,6 +105,13 @@ def test_hostile_ground_truths_are_refused_at_once(tmp_path: Path) -> None:
     assert all(outcome == {"refused"} for outcome in outcomes.values()), outcomes
 
 
+def test_the_manifest_frame_limit_is_the_simulators() -> None:
+    from kvtracker_sdk.backends.simulated_scene import MAX_FRAMES
+    from kvtracker_sdk.scale import manifest
+
+    assert manifest.MAX_FRAMES == MAX_FRAMES
+
+
 def test_an_orbit_of_a_billion_frames_is_refused_before_anything_is_built() -> None:
     with pytest.raises(TrajectoryError, match="num_frames"):
         orbit(10**9)
