@@ -55,3 +55,11 @@ def test_checked_number_names_the_field_and_refuses_non_numbers() -> None:
                            (10**30, "plausible range"), (0.5, "whole"), ([1], "a number")]:
         with pytest.raises(ConfigError, match=f"width.*{message}"):
             checked_number(value, "width", ConfigError, low=1, high=10_000, integer=True)
+
+
+def test_the_older_regular_file_reader_refuses_a_folder_with_a_typed_error(tmp_path: Path) -> None:
+    """``io/regular_file`` (``--config``, list files) used to raise a raw IsADirectoryError."""
+    from kvtracker_sdk.io.regular_file import read_regular_text
+
+    with pytest.raises(ConfigError, match="folder"):
+        read_regular_text(tmp_path, ConfigError)
