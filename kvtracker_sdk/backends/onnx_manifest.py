@@ -172,7 +172,8 @@ def read_manifest(folder: str | Path) -> OnnxManifest:
     weights file exist inside the folder and have a recorded sha256 (verified by the backend,
     ``onnx_integrity``), and that
     the recorded fingerprint is the one the recorded identity hashes to (a hand-edited or
-    mismatched manifest would otherwise let caches cross models).
+    mismatched manifest would otherwise let caches cross models), and that its other claims
+    (config hash, graph specs, layout, weights size) hold (``onnx_claims``).
     """
     folder = Path(folder)
     path = folder / MANIFEST_NAME
@@ -219,4 +220,7 @@ def read_manifest(folder: str | Path) -> OnnxManifest:
             f"{path}: fingerprint {manifest.fingerprint} does not match its family, config "
             f"hash and weights fingerprint (which give {identity})"
         )
+    from kvtracker_sdk.backends.onnx_claims import check_manifest_claims  # imports this module
+
+    check_manifest_claims(folder, manifest)
     return manifest

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.backends.graph_runner import GraphRunner
+from kvtracker_sdk.backends.onnx_claims import check_graph_signatures
 from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
 from kvtracker_sdk.errors import BackendError, ConfigError, MissingDependencyError
 
@@ -109,6 +110,12 @@ class OnnxRunner(GraphRunner):
             }
         except Exception as exc:  # onnxruntime raises its own Fail/InvalidGraph/RuntimeError
             raise BackendError(f"ONNX Runtime cannot load the graphs in {folder}: {exc}") from exc
+        # each file must be the graph of its role (names and dims as the graph itself says)
+        check_graph_signatures(manifest, {
+            name: ({node.name: tuple(node.shape) for node in session.get_inputs()},
+                   {node.name: tuple(node.shape) for node in session.get_outputs()})
+            for name, session in self._sessions.items()
+        })
 
     @property
     def active_providers(self) -> tuple[str, ...]:

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.backends.graph_runner import GraphRunner
+from kvtracker_sdk.backends.onnx_claims import GraphSignature, check_graph_signatures
 from kvtracker_sdk.backends.onnx_manifest import OnnxManifest
 from kvtracker_sdk.backends.openvino_core import import_openvino, shared_core
 from kvtracker_sdk.backends.openvino_graph import folds_pillow_resize, read_graph
@@ -118,6 +119,20 @@ def static_graphs(
     return set(static_shapes)
 
 
+def _signature(model: Any, known: set[str]) -> GraphSignature:
+    """An ``openvino.Model``'s (inputs, outputs): name -> dims (None where dynamic). A port may
+    carry several names; the one in ``known`` (the manifest's) is used if it has one."""
+
+    def dims(port: Any) -> tuple[int | None, ...]:
+        return tuple(d.get_length() if d.is_static else None for d in port.get_partial_shape())
+
+    def name(port: Any) -> str:
+        return next(iter(sorted(set(port.get_names()) & known)), port.get_any_name())
+
+    return ({name(port): dims(port) for port in model.inputs},
+            {name(port): dims(port) for port in model.outputs})
+
+
 class OpenVinoRunner(GraphRunner):
     """One OpenVINO compiled model per graph of an export; mapping and tracking passes in numpy.
 
@@ -148,6 +163,13 @@ class OpenVinoRunner(GraphRunner):
             models = {
                 name: read_graph(core, folder / spec.file) for name, spec in manifest.graphs.items()
             }
+            known = {t.name for g in manifest.graphs.values() for t in (*g.inputs, *g.outputs)}
+            signatures = {name: _signature(model, known) for name, model in models.items()}
+        except Exception as exc:  # OpenVINO raises RuntimeError/its own for unreadable graphs
+            raise BackendError(f"OpenVINO cannot read the graphs in {folder}: {exc}") from exc
+        # each file must be the graph of its role, checked before anything is compiled
+        check_graph_signatures(manifest, signatures)
+        try:
             static -= {name for name in static if folds_pillow_resize(models[name])}
             # static shapes: the dynamic tracking decoder is never run (a copy of its weights less)
             self._compiled = {

@@ -22,6 +22,8 @@ that.
 from __future__ import annotations
 
 import functools
+import io
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +32,7 @@ import numpy as np
 
 from kvtracker_sdk.errors import BackendError, TrajectoryError
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
+from kvtracker_sdk.user_files import read_user_text
 
 __all__ = [
     "Cuboid",
@@ -49,6 +52,8 @@ __all__ = [
 _CODE_BASE = 224  # digits per channel
 _CODE_OFFSET = 16  # smallest code value: black (masked background) never decodes
 MAX_FRAMES = _CODE_BASE * _CODE_BASE
+MAX_RESAMPLED_FRAMES = MAX_FRAMES  # a simulated camera cannot number more frames than this
+MAX_TRAJECTORY_BYTES = 64 << 20  # ~600k TUM lines; parsing a file costs ~5x its size
 FOCAL_PER_WIDTH = 0.81
 
 
@@ -80,17 +85,40 @@ class GroundTruth:
         Resampling picks, for each tick of a ``rate_hz`` clock, the nearest recorded pose (the
         motion capture runs at ~300 Hz, a camera at 30 Hz). ``rate_hz=None`` keeps every pose.
         """
+        # a FIFO, a device or a huge file is refused before a byte is parsed (user_files)
+        text = read_user_text(path, TrajectoryError, what="TUM trajectory",
+                              max_bytes=MAX_TRAJECTORY_BYTES)
         try:
-            data = np.loadtxt(path, comments="#", ndmin=2)
-        except (OSError, ValueError) as exc:
-            raise TrajectoryError(f"cannot read TUM trajectory {path}: {exc}") from exc
+            data = np.loadtxt(io.StringIO(text), comments="#", ndmin=2)
+        except ValueError as exc:
+            raise TrajectoryError(f"cannot read TUM trajectory {path}: {str(exc)[:200]}") from exc
         if data.shape[1] != 8 or not np.all(np.isfinite(data)):
             raise TrajectoryError(f"{path}: expected 8 finite columns, got shape {data.shape}")
+        if len(data) == 0:
+            raise TrajectoryError(f"{path}: no poses")
         if rate_hz is not None:
+            # the resampled count is known before anything is allocated: two poses a year apart
+            # would otherwise ask for ~1e9 ticks (tens of GB)
+            span = float(data[-1, 0] - data[0, 0])
+            ticks_needed = span * rate_hz
+            if not (0.0 <= ticks_needed <= MAX_RESAMPLED_FRAMES):
+                raise TrajectoryError(
+                    f"{path}: time span {span:.6g} s at {rate_hz} Hz gives "
+                    f"{ticks_needed:.3g} frames; timestamps must increase and give at most "
+                    f"{MAX_RESAMPLED_FRAMES} frames"
+                )
             ticks = np.arange(data[0, 0], data[-1, 0], 1.0 / rate_hz)
-            nearest = np.clip(np.searchsorted(data[:, 0], ticks), 1, len(data) - 1)
-            left_closer = ticks - data[nearest - 1, 0] < data[nearest, 0] - ticks
+            if len(ticks) == 0:
+                ticks = data[:1, 0]
+            nearest = np.clip(np.searchsorted(data[:, 0], ticks), 1, max(1, len(data) - 1))
+            if len(data) == 1:
+                nearest = np.zeros(len(ticks), dtype=np.intp)
+                left_closer = np.zeros(len(ticks), dtype=bool)
+            else:
+                left_closer = ticks - data[nearest - 1, 0] < data[nearest, 0] - ticks
             data = data[nearest - left_closer.astype(int)]
+        if np.any(np.linalg.norm(data[:, 4:8], axis=1) < 1e-12):
+            raise TrajectoryError(f"{path}: a zero quaternion")
         poses = np.tile(np.eye(4), (len(data), 1, 1))
         poses[:, :3, :3] = rotation_from_quat_xyzw(data[:, 4:8])
         poses[:, :3, 3] = data[:, 1:4]
@@ -118,6 +146,14 @@ def orbit(
 ) -> GroundTruth:
     """A camera circling the origin (world z up) at ``radius`` and ``height``, always looking at
     it: the natural object-mode trajectory (``SimulatedScene.around`` puts the sphere there)."""
+    if isinstance(num_frames, bool) or not isinstance(num_frames, int | np.integer) or not (
+        1 <= num_frames <= MAX_FRAMES
+    ):  # checked before the poses are built: 10**9 frames would take tens of GB
+        raise TrajectoryError(f"orbit num_frames must be a whole number in 1..{MAX_FRAMES}, "
+                              f"got {num_frames!r:.40}")
+    if not (math.isfinite(turns) and math.isfinite(radius) and math.isfinite(height)):
+        raise TrajectoryError(f"orbit turns, radius and height must be finite, got "
+                              f"{turns}, {radius}, {height}")
     angles = np.linspace(0.0, 2.0 * np.pi * turns, num_frames, endpoint=False)
     target, up = np.zeros(3), np.array([0.0, 0.0, 1.0])
     poses = np.stack(

@@ -23,6 +23,7 @@ import typer
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
+from kvtracker_sdk.cli.number_options import MAX_PORT, MAX_SIMULATED_FRAMES, finite
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.errors import ConfigError
@@ -49,8 +50,8 @@ def _parse_size(text: str) -> tuple[int, int]:
         height, width = (int(v) for v in text.lower().split("x"))
     except ValueError as exc:
         raise ConfigError(f"--size {text!r}: expected HEIGHTxWIDTH, e.g. 240x320") from exc
-    if min(height, width) < 28:
-        raise ConfigError(f"--size {text!r}: frames need at least 28 pixels a side")
+    if min(height, width) < 28 or max(height, width) > 4096:
+        raise ConfigError(f"--size {text!r}: frames need at least 28 pixels a side (and at most 4096)")
     return height, width
 
 
@@ -71,32 +72,33 @@ def demo(
     gt: Annotated[Path | None, typer.Option(
         "--gt", help="Drive the simulation with this TUM groundtruth.txt instead of the built-in "
         "hand-held orbit. [default: none: the orbit]")] = None,
-    frames: Annotated[int | None, typer.Option(
+    frames: Annotated[int | None, typer.Option(min=1, max=MAX_SIMULATED_FRAMES,
         help="Frames to run (at 30 Hz). [default: 600 for the orbit, all of --gt]")] = None,
     size: Annotated[str, typer.Option(help="Rendered frame size HEIGHTxWIDTH.")] = "240x320",
     loss: Annotated[str | None, typer.Option(
         help="Frames START:STOP where the camera is covered. [default: 1.5 s from 55 %]")] = None,
     no_loss: Annotated[bool, typer.Option("--no-loss", help="Never lose tracking. [default: off]")] = False,
-    noise_cm: Annotated[float | None, typer.Option(
+    noise_cm: Annotated[float | None, typer.Option(min=0, max=1000, callback=finite,
         help="Pose noise per axis (cm). [default: 1.0; 0.3 on the desk, seen from 0.5 m]")] = None,
-    noise_deg: Annotated[float | None, typer.Option(
+    noise_deg: Annotated[float | None, typer.Option(min=0, max=180, callback=finite,
         help="Rotation noise (degrees). [default: 0.3; 0.1 on the desk]")] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the path and the noise.")] = 0,
-    resolution: Annotated[int, typer.Option(help="Model input side d (224, 308, 518).")] = 308,
+    seed: Annotated[int, typer.Option(min=0, max=2**63 - 1, help="Seed of the path and the noise.")] = 0,
+    resolution: Annotated[int, typer.Option(min=14, max=4096, help="Model input side d (224, 308, 518).")] = 308,
     mode: Annotated[str, typer.Option(
         help="scene: track the camera; object: walk around an object on a desk beside another, "
         "tracked from its box on the first frame only (the tracker predicts its region in every "
         "next frame).")] = "scene",
-    keyframe_interval: Annotated[int, typer.Option(help="A keyframe every N frames.")] = 50,
+    keyframe_interval: Annotated[int, typer.Option(min=1, help="A keyframe every N frames.")] = 50,
     async_mapping: Annotated[bool, typer.Option(
         "--async-mapping", help="Rebuild the map on a worker thread. [default: off]")] = False,
     rerun: Annotated[Path | None, typer.Option(
         help="Also record the run as a rerun .rrd file ([viz] extra). [default: none]", metavar="FILE.rrd")] = None,
-    voxel_size: Annotated[float | None, typer.Option(
+    voxel_size: Annotated[float | None, typer.Option(min=0, callback=finite,
         help="Voxel edge of points.ply (0 keeps all). [default: auto]")] = None,
     view: Annotated[bool, typer.Option(
         "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra). [default: off]")] = False,
-    view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
+    view_port: Annotated[int, typer.Option(
+        min=0, max=MAX_PORT, help="Port of --view (0: any free port).")] = 8080,
     save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file. [default: none]")] = None,
     ros2_bag: Annotated[Path | None, typer.Option(
         help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,

@@ -28,7 +28,7 @@ def eval_many(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("eval_many"),
     engine: Annotated[Engine, typer.Option(
         help="serial (this process), local (process pool) or ray ([ray] extra).")] = Engine.LOCAL,
-    workers: Annotated[int, typer.Option(
+    workers: Annotated[int, typer.Option(min=1, max=1024,
         help="Worker processes or Ray actors (each loads the model once).")] = 2,
 ) -> None:
     """Evaluate many sequences and configurations; print and write one table.

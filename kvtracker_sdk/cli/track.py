@@ -11,6 +11,7 @@ import typer
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.live_outputs import LiveOptions, live_outputs
 from kvtracker_sdk.cli.logging_setup import CliState
+from kvtracker_sdk.cli.number_options import MAX_PORT, finite
 from kvtracker_sdk.cli.outputs import RunDescription
 from kvtracker_sdk.cli.progress import busy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
@@ -50,7 +51,7 @@ def track(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
     dtype: Annotated[ComputeDtype, typer.Option(
         help="Compute dtype (torch), precision hint (openvino).")] = ComputeDtype.FLOAT32,
-    threads: Annotated[int | None, typer.Option(
+    threads: Annotated[int | None, typer.Option(min=1, max=4096,
         help="CPU threads for inference (torch, onnx, openvino). [default: the runtime's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
         help="Model input side d (224, 308, 504, 518): Pi3 at most d² pixels, DA3 the longest "
@@ -65,11 +66,11 @@ def track(
     bbox_once: Annotated[bool, typer.Option(
         "--bbox-once", help="Object mode: give --bbox with the first frame only; the tracker "
         "predicts the object's region in every frame after it (object.json). [default: off]")] = False,
-    keyframe_interval: Annotated[int | None, typer.Option(
+    keyframe_interval: Annotated[int | None, typer.Option(min=1,
         help="Scene mode: a keyframe every N frames. [default: 50]")] = None,
-    view_angle: Annotated[float | None, typer.Option(
+    view_angle: Annotated[float | None, typer.Option(min=0, max=180, callback=finite,
         help="Object mode: new keyframe past this view change (degrees). [default: 10]")] = None,
-    max_keyframes: Annotated[int | None, typer.Option(
+    max_keyframes: Annotated[int | None, typer.Option(min=1,
         help="Keyframe budget. [default: 32; object mode 60]")] = None,
     cache_dtype: Annotated[str | None, typer.Option(
         help="How the map's K/V are kept and saved: backend (its dtype), int8 or fp8 "
@@ -93,21 +94,22 @@ def track(
     save_map: Annotated[Path | None, typer.Option(help="Save the final map as a .kvmap file. [default: none]")] = None,
     rerun: Annotated[Path | None, typer.Option(
         help="Also record the run as a rerun .rrd file ([viz] extra). [default: none]", metavar="FILE.rrd")] = None,
-    start: Annotated[int, typer.Option(help="First frame to use.")] = 0,
-    stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
-    max_frames: Annotated[int | None, typer.Option(help="Stop after N frames. [default: all]")] = None,
+    start: Annotated[int, typer.Option(min=0, help="First frame to use.")] = 0,
+    stride: Annotated[int, typer.Option(min=1, help="Use every N-th frame.")] = 1,
+    max_frames: Annotated[int | None, typer.Option(min=1, help="Stop after N frames. [default: all]")] = None,
     on_bad_frame: Annotated[BadFramePolicy, typer.Option(
         help="A frame that cannot be used (undecodable, another size, bad mask): stop the run "
         "there (outputs so far kept, exit code 3) or skip it (counted in the summary and "
         "run.json).")] = BadFramePolicy.STOP,
-    fps: Annotated[float, typer.Option(help="Frame rate that stamps an image folder.")] = 30.0,
-    min_confidence: Annotated[float, typer.Option(
+    fps: Annotated[float, typer.Option(min=1e-3, max=1e6, callback=finite, help="Frame rate that stamps an image folder.")] = 30.0,
+    min_confidence: Annotated[float, typer.Option(min=0, max=1, callback=finite,
         help="Confidence filter of points.ply.")] = 0.5,
-    voxel_size: Annotated[float | None, typer.Option(
+    voxel_size: Annotated[float | None, typer.Option(min=0, callback=finite,
         help="Voxel edge of points.ply (world units; 0 keeps all). [default: auto]")] = None,
     view: Annotated[bool, typer.Option(
         "--view", help="Serve a live 3D view on http://127.0.0.1:PORT while tracking ([view] extra). [default: off]")] = False,
-    view_port: Annotated[int, typer.Option(help="Port of --view (0: any free port).")] = 8080,
+    view_port: Annotated[int, typer.Option(
+        min=0, max=MAX_PORT, help="Port of --view (0: any free port).")] = 8080,
     ros2_bag: Annotated[Path | None, typer.Option(
         help="Also write a ROS 2 bag (MCAP) into this new folder ([ros] extra). [default: none]", metavar="DIR")] = None,
     depth: Annotated[Path | None, typer.Option(

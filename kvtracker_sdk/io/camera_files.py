@@ -10,6 +10,13 @@
 * a ROS ``camera_calibration`` YAML: ``image_width``, ``image_height``, ``camera_matrix:
   {rows, cols, data}``, ``distortion_model``, ``distortion_coefficients: {data}``.
 
+Every value is checked against a plausible range before a ``Camera`` is made (``SourceError``
+naming the field): ``width``/``height`` whole numbers in [1, 65536] px; ``fx``/``fy`` in
+[1e-3, 1e4] x the longer image side (fields of view from ~0.01 to ~179.9 degrees); ``cx``/``cy``
+within one image size of the image; distortion coefficients finite with magnitude at most
+``MAX_DISTORTION``. The file itself is read with ``io/user_files.py`` (regular files only, size
+cap, bounded nesting, safe YAML with alias-bomb protection).
+
 ROS distortion models ``plumb_bob`` and ``rational_polynomial`` are OpenCV's 5 and 8 coefficients;
 ``equidistant`` (fisheye) is refused. ``K`` is used, not ``P``: ``P`` describes the rectified
 image, and the SDK undistorts with K itself (``preprocess/undistort.py``).
@@ -20,18 +27,32 @@ image, and the SDK undistorts with K itself (``preprocess/undistort.py``).
 
 from __future__ import annotations
 
-import json
+import math
 import os
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.errors import InputError, MissingDependencyError, SourceError
+from kvtracker_sdk.errors import InputError, SourceError
 from kvtracker_sdk.geometry.camera import Camera
+from kvtracker_sdk.user_files import checked_number, load_user_document
 
-__all__ = ["DATASET_CAMERAS", "camera_from_mapping", "read_camera_file"]
+__all__ = [
+    "DATASET_CAMERAS",
+    "FOCAL_PER_SIDE",
+    "MAX_DISTORTION",
+    "MAX_IMAGE_SIDE",
+    "camera_from_mapping",
+    "read_camera_file",
+]
+
+MAX_IMAGE_SIDE = 65536  # px: larger than any camera sensor; also bounds undistortion maps
+FOCAL_PER_SIDE = (1e-3, 1e4)  # focal length / longer image side: ~179.9 to ~0.006 degree FOV
+# OpenCV's rational model fits coefficients up to a few hundred on real wide-angle lenses;
+# larger ones describe no lens and make undistortion's fixed-point iteration diverge
+MAX_DISTORTION = 1e3
+_CAMERA_KEYS = 64  # a camera file has ~10 fields; ROS messages ~12
 
 # https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats ("Intrinsic Camera Calibration");
 # fr3 images are published already undistorted. 7-Scenes: the Kinect's default, 585 px focal.
@@ -52,20 +73,35 @@ def _field(data: Mapping[str, Any], *names: str) -> Any:
     return None
 
 
-def _numbers(value: Any, what: str) -> list[float]:
+def _numbers(value: Any, what: str, source: str) -> list[float]:
+    """A list of finite numbers (SourceError naming ``what`` otherwise)."""
     if isinstance(value, Mapping):  # camera_calibration: {rows, cols, data}
         value = value.get("data")
-    if not isinstance(value, list | tuple) or not all(isinstance(v, int | float) for v in value):
-        raise InputError(f"camera {what} must be a list of numbers, got {value!r}")
-    return [float(v) for v in value]
+    if not isinstance(value, list | tuple) or len(value) > 16:
+        raise SourceError(f"{source}: camera {what} must be a list of at most 16 numbers, "
+                          f"got {type(value).__name__}")
+    return [
+        checked_number(v, f"{what}[{i}]", SourceError, low=-math.inf, high=math.inf,
+                       source=source)
+        for i, v in enumerate(value)
+    ]
 
 
 def camera_from_mapping(data: Mapping[str, Any], source: str = "camera") -> Camera:
     """A ``Camera`` from a parsed camera file (any of the layouts in the module docstring)."""
     if not isinstance(data, Mapping):
-        raise InputError(f"{source}: a camera file must hold a mapping, got {type(data).__name__}")
+        raise SourceError(f"{source}: a camera file must hold a mapping, got {type(data).__name__}")
+    if len(data) > _CAMERA_KEYS:
+        raise SourceError(f"{source}: {len(data)} fields, more than a camera file has")
     if "fx" in data:
-        return Camera.from_dict(data)
+        missing = [name for name in ("fy", "cx", "cy", "width", "height") if name not in data]
+        if missing:
+            raise SourceError(f"{source}: camera needs fx, fy, cx, cy, width, height; missing {missing}")
+        distortion = _numbers(data.get("distortion") or [], "distortion", source)
+        return _checked_camera(
+            source, data["fx"], data["fy"], data["cx"], data["cy"], data["width"], data["height"],
+            distortion,
+        )
     matrix = _field(data, "K", "k", "camera_matrix")
     width = _field(data, "width", "image_width")
     height = _field(data, "height", "image_height")
@@ -73,20 +109,53 @@ def camera_from_mapping(data: Mapping[str, Any], source: str = "camera") -> Came
         raise InputError(
             f"{source}: need fx/fy/cx/cy/width/height, a ROS CameraInfo (K, D, width, height) or "
             f"a camera_calibration file (camera_matrix, image_width, image_height); got keys "
-            f"{sorted(data)}"
+            f"{sorted(str(key)[:40] for key in data)}"
         )
-    model = str(_field(data, "distortion_model") or "").lower()
+    raw_model = _field(data, "distortion_model") or ""
+    model = raw_model.lower() if isinstance(raw_model, str) else repr(raw_model)[:40]
     if model not in _OPENCV_MODELS:
-        raise InputError(f"{source}: distortion model {model!r} is not OpenCV's pinhole model "
+        raise InputError(f"{source}: distortion_model {model!r} is not OpenCV's pinhole model "
                          "(plumb_bob or rational_polynomial)")
-    k = _numbers(matrix, "K")
+    k = _numbers(matrix, "K", source)
     if len(k) != 9:
         raise InputError(f"{source}: K must have 9 numbers, got {len(k)}")
-    distortion = _numbers(_field(data, "D", "d", "distortion_coefficients") or [], "D")
+    distortion = _numbers(_field(data, "D", "d", "distortion_coefficients") or [], "D", source)
+    matrix_3x3 = np.reshape(k, (3, 3))
+    # no skew, last row [0, 0, 1]: Camera.from_K's check, on numbers already known finite
+    if (abs(k[1]) > 1e-9 * abs(k[0]) or abs(k[3]) > 1e-12
+            or not np.allclose(matrix_3x3[2], [0.0, 0.0, 1.0], atol=1e-12)):
+        raise InputError(
+            f"{source}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {k}"
+        )
+    return _checked_camera(
+        source, k[0], k[4], k[2], k[5], width, height, distortion,
+    )
+
+
+def _checked_camera(
+    source: str, fx: Any, fy: Any, cx: Any, cy: Any, width: Any, height: Any,
+    distortion: list[float],
+) -> Camera:
+    """A ``Camera`` from raw file values, each checked against its range (module docstring)."""
+    w = int(checked_number(width, "width", SourceError, low=1, high=MAX_IMAGE_SIDE, integer=True,
+                           source=source))
+    h = int(checked_number(height, "height", SourceError, low=1, high=MAX_IMAGE_SIDE,
+                           integer=True, source=source))
+    side = max(w, h)
+    low, high = FOCAL_PER_SIDE[0] * side, FOCAL_PER_SIDE[1] * side
+    focal = [checked_number(f, name, SourceError, low=low, high=high, source=source)
+             for name, f in (("fx", fx), ("fy", fy))]
+    centre = [
+        checked_number(cx, "cx", SourceError, low=-w, high=2.0 * w, source=source),
+        checked_number(cy, "cy", SourceError, low=-h, high=2.0 * h, source=source),
+    ]
+    for index, coefficient in enumerate(distortion):
+        checked_number(coefficient, f"distortion[{index}]", SourceError, low=-MAX_DISTORTION,
+                       high=MAX_DISTORTION, source=source)
     try:
-        return Camera.from_K(np.reshape(k, (3, 3)), int(width), int(height), distortion)
-    except InputError as exc:
-        raise InputError(f"{source}: {exc}") from exc
+        return Camera(focal[0], focal[1], centre[0], centre[1], w, h, tuple(distortion))
+    except InputError as exc:  # the distortion count
+        raise SourceError(f"{source}: {exc}") from exc
 
 
 # what the CLI says to do about a camera file it cannot use (--camera FILE)
@@ -95,26 +164,10 @@ _CAMERA_FILE_HINT = ("--camera takes a JSON or YAML file with fx, fy, cx, cy, wi
 
 
 def read_camera_file(path: str | os.PathLike[str]) -> Camera:
-    """The camera described by a JSON or YAML file (layouts: module docstring)."""
-    target = Path(path)
-    try:
-        text = target.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SourceError(f"cannot read camera file {target}: {exc}", hint=_CAMERA_FILE_HINT) from exc
-    if target.suffix.lower() in (".yaml", ".yml"):
-        try:
-            import yaml
-        except ImportError as exc:
-            raise MissingDependencyError.for_extra(
-                "yaml", "reading a YAML camera file needs PyYAML (or write the camera as JSON)"
-            ) from exc
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise SourceError(f"{target} is not valid YAML: {exc}", hint=_CAMERA_FILE_HINT) from exc
-    else:
-        try:
-            data = json.loads(text)
-        except ValueError as exc:
-            raise SourceError(f"{target} is not valid JSON: {exc}", hint=_CAMERA_FILE_HINT) from exc
-    return camera_from_mapping(data, str(target))
+    """The camera described by a JSON or YAML file (layouts and checked ranges: module docstring).
+
+    ``SourceError`` (naming the field) for a file that is not a regular file, too large, not
+    JSON/YAML, or holds a value outside its range; ``MissingDependencyError`` for YAML without
+    PyYAML."""
+    document = load_user_document(path, SourceError, what="camera file")
+    return camera_from_mapping(document, str(path))

@@ -63,6 +63,10 @@ RAY_Y = "keyframes.ray_y"
 
 _UNORM16 = 65535.0
 _F16_HEADROOM_LOG2 = 15  # largest |value| / scale < 2**15, below float16's 65504
+# a keyframe's largest |coordinate| is ~2**15 scales: these allow 2**-41 (5e-13) to 2**40 (1e12)
+# world units, far beyond any scene; an edited scale outside gives points that are finite but
+# meaningless
+POINTS_SCALE_RANGE = (2.0**-55, 2.0**25)
 _RAY_RTOL = 1e-5  # float32 x / z is constant per column to a few ulp; anything else is not a ray
 
 
@@ -148,18 +152,58 @@ def decode_compact(
     tensors: Mapping[str, torch.Tensor], encoding: str, resolution: tuple[int, int], source: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(bool masks [N, H, W], float32 confidences [N, H, W], float32 points [N, H, W, 3]) of a
-    compact map's tensors; a scale that is not a positive finite number is MapCorruptedError."""
+    compact map's tensors. MapCorruptedError for a scale the encoder cannot write (it writes
+    finite positive powers of two) and for points or rays that decode to values the stored
+    float16 did not hold (an edited scale overflowing float32)."""
     h, w = resolution
     scales = tensors[POINTS_SCALE].numpy()
-    if not np.all(np.isfinite(scales) & (scales > 0)):
-        raise MapCorruptedError(f"{source}: keyframe point scales must be finite and positive")
+    low, high = POINTS_SCALE_RANGE
+    if not np.all(np.isfinite(scales) & (scales >= low) & (scales <= high)
+                  & (np.frexp(scales)[0] == 0.5)):
+        raise MapCorruptedError(
+            f"{source}: keyframe point scales (keyframes.points_scale) must be powers of two in "
+            f"[2**-55, 2**25], got {scales.tolist()[:8]}"
+        )
+    for name in (RAY_X, RAY_Y):
+        if name in tensors and not np.all(np.isfinite(tensors[name].numpy())):
+            raise MapCorruptedError(f"{source}: {name} must be finite")
     bits = tensors[MASK_BITS].numpy()
     masks = np.unpackbits(bits, axis=1, count=h * w).reshape(len(bits), h, w).astype(bool)
     confidence = (tensors[CONFIDENCE_UNORM16].numpy().astype(np.float32) / np.float32(_UNORM16))
     if encoding == COMPACT_XYZ:
-        points = tensors[POINTS_F16].numpy().astype(np.float32) * scales[:, None, None, None]
+        stored = tensors[POINTS_F16].numpy()
+        _check_scales_fit(stored, scales, POINTS_F16, source)
+        with np.errstate(over="ignore"):
+            points = stored.astype(np.float32) * scales[:, None, None, None]
+        _same_finiteness(stored, points, POINTS_F16, source)
         return masks, confidence, points
-    z = tensors[DEPTH_F16].numpy().astype(np.float32) * scales[:, None, None]
-    ray_x, ray_y = tensors[RAY_X].numpy(), tensors[RAY_Y].numpy()
-    points = np.stack((ray_x[:, None, :] * z, ray_y[:, :, None] * z, z), axis=-1)
+    stored = tensors[DEPTH_F16].numpy()
+    _check_scales_fit(stored, scales, DEPTH_F16, source)
+    with np.errstate(over="ignore", invalid="ignore"):
+        z = stored.astype(np.float32) * scales[:, None, None]
+        ray_x, ray_y = tensors[RAY_X].numpy(), tensors[RAY_Y].numpy()
+        points = np.stack((ray_x[:, None, :] * z, ray_y[:, :, None] * z, z), axis=-1)
+    _same_finiteness(stored[..., None].repeat(3, axis=-1), points, DEPTH_F16, source)
     return masks, confidence, points
+
+
+def _check_scales_fit(stored: np.ndarray, scales: np.ndarray, name: str, source: str) -> None:
+    """The encoder's invariant (``_power_of_two_scales``): each keyframe's largest finite
+    |stored value| lies in [2**14, 2**15] (float16 rounding may reach 2**15), or is 0 with scale
+    1. An edited power-of-two scale (2**120, 2**-149) breaks it."""
+    for k, block in enumerate(stored):
+        finite = np.abs(block[np.isfinite(block)].astype(np.float32))
+        largest = float(finite.max()) if finite.size else 0.0
+        low, high = 2.0 ** (_F16_HEADROOM_LOG2 - 1), 2.0**_F16_HEADROOM_LOG2
+        if (largest == 0.0 and scales[k] != 1.0) or (largest != 0.0 and not low <= largest <= high):
+            raise MapCorruptedError(
+                f"{source}: keyframes.points_scale[{k}] = {float(scales[k])!r} does not fit the "
+                f"stored {name} (the encoder writes the power of two that does)"
+            )
+
+
+def _same_finiteness(stored: np.ndarray, decoded: np.ndarray, name: str, source: str) -> None:
+    """Decoding makes no value non-finite that was finite in the file."""
+    if not np.array_equal(np.isfinite(stored), np.isfinite(decoded)):
+        raise MapCorruptedError(f"{source}: {name} decodes to values out of float32's range "
+                                "(an impossible points_scale)")

@@ -39,10 +39,12 @@ from kvtracker_sdk.io.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
+    GAUGE_SCALE_RANGE,
     KEYFRAME_ENCODING_FIELD,
     LAYER_LENGTHS_FIELD,
     LEGACY_PREPROCESSING,
     MAX_GENERATION,
+    MAX_WORLD_TRANSLATION,
     OLDEST_READABLE_VERSION,
     PREPROCESSING_FIELD,
     PRUNED_FORMAT_VERSION,
@@ -353,6 +355,14 @@ def gauge_problem(gauge: Sim3) -> str | None:
     T[:3, :3] = gauge.rotation
     if not check_rigid(T, atol=RIGID_ATOL):
         return f"gauge rotation is not orthonormal with determinant +1: {gauge.rotation.tolist()}"
+    low, high = GAUGE_SCALE_RANGE
+    if not (math.isfinite(gauge.scale) and low <= gauge.scale <= high):
+        return f"gauge scale {gauge.scale!r} is outside its range [{low:g}, {high:g}]"
+    translation = np.asarray(gauge.translation, dtype=np.float64)
+    if not (np.all(np.isfinite(translation))
+            and float(np.abs(translation).max()) <= MAX_WORLD_TRANSLATION):
+        return (f"gauge translation {translation.tolist()} is outside its range "
+                f"(|t| <= {MAX_WORLD_TRANSLATION:g} per axis)")
     return None
 
 

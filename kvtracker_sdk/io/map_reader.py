@@ -35,6 +35,7 @@ from kvtracker_sdk.io.map_format import MapInfo
 from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES, layer_kept
 from kvtracker_sdk.io.map_tensors import empty_cache, layer_tensor_names
 from kvtracker_sdk.positional_read import read_exactly
+from kvtracker_sdk.user_files import checked_path
 
 __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
 
@@ -108,7 +109,10 @@ class MapFile:
 
 @contextlib.contextmanager
 def open_map_file(path: str | os.PathLike[str]) -> Iterator[MapFile]:
-    """Open ``path`` once for reading; MapFormatError unless it is a regular file."""
+    """Open ``path`` once for reading (a symbolic link is followed to its target);
+    MapFormatError unless that is a regular file, MapIOError for a path that is not a ``str``
+    or ``os.PathLike``."""
+    path = checked_path(path, MapIOError, what="map")
     source = str(path)
     try:
         fd = os.open(path, _OPEN_FLAGS)

@@ -62,6 +62,8 @@ __all__ = [
     "SCALE_CODE",
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "GAUGE_SCALE_RANGE",
+    "MAX_WORLD_TRANSLATION",
     "KEYFRAME_ENCODING_FIELD",
     "LAYER_LENGTHS_FIELD",
     "LEGACY_PREPROCESSING",
@@ -113,6 +115,12 @@ MAX_GENERATION = 2**53 - 1
 # Saved keyframe poses and the gauge rotation must be rigid to this tolerance (a network's float32
 # rotations are orthonormal to ~1e-7; a tampered or scaled pose is far off).
 RIGID_ATOL = 1e-4
+# Ranges of the numbers a tracker trusts from a header (checked on saving and on loading). The
+# gauge scale is a product of depth ratios between mapping passes (each near 1); world
+# positions are in the first pass's units (~metres). Beyond these a map is edited or broken, and
+# tracking against it would give poses that are finite but meaningless (or overflow to inf).
+GAUGE_SCALE_RANGE = (1e-6, 1e6)
+MAX_WORLD_TRANSLATION = 1e6
 
 # cache dtype name (as in BackendInfo.dtype) -> (safetensors dtype code, bytes per element)
 CACHE_DTYPES: dict[str, tuple[str, int]] = {

@@ -32,6 +32,7 @@ from kvtracker_sdk.io.map_schema import (
     IMAGE,
     LOCAL_POINTS,
     MASK,
+    MAX_WORLD_TRANSLATION,
     MEAN_CONFIDENCE,
     RIGID_ATOL,
     T_WORLD_CAM,
@@ -44,6 +45,7 @@ from kvtracker_sdk.io.map_schema import (
 )
 
 __all__ = [
+    "cache_problem",
     "check_digests",
     "empty_cache",
     "keyframe_problem",
@@ -94,6 +96,8 @@ def keyframe_problem(
     a pose that is not a rigid transform, or confidences that are not finite and in [0, 1]."""
     if not check_rigid(T_world_cam, atol=RIGID_ATOL):
         return "pose T_world_cam is not a finite rigid transform"
+    if float(np.abs(np.asarray(T_world_cam)[:3, 3]).max()) > MAX_WORLD_TRANSLATION:
+        return f"pose translation is outside its range (|t| <= {MAX_WORLD_TRANSLATION:g} per axis)"
     confidence = np.asarray(confidence_map)
     if not (np.all(np.isfinite(confidence)) and confidence.min(initial=0.0) >= 0.0
             and confidence.max(initial=0.0) <= 1.0):  # fmt: skip
@@ -285,6 +289,33 @@ def empty_cache(info: MapInfo, kept_tokens: list[torch.Tensor] | None) -> KVCach
     )
 
 
+def cache_problem(cache: KVCache) -> str | None:
+    """What makes a loaded cache's stored values impossible, or None.
+
+    A quantised cache's scales must be finite and within what ``quantization.round_up`` can
+    produce (the scale dtype's smallest normal to its largest value): a zero, negative,
+    subnormal or NaN scale gives K/V that are wrong but finite, and poses marked valid that are
+    off by metres. Its int8 data lie in [-127, 127] (the quantiser clamps there) and its fp8
+    data are finite; a dense cache's K/V must be finite."""
+    for layer in range(cache.layout.num_layers):
+        parts = cache.stored_parts(layer)
+        for name, tensor in parts.items():
+            if name.endswith("_scale"):
+                info = torch.finfo(tensor.dtype)
+                values = tensor.float()
+                if values.numel() and not bool(
+                    (torch.isfinite(values) & (values >= info.tiny) & (values <= info.max)).all()
+                ):
+                    return (f"layer {layer} {name}: a scale outside [{info.tiny:g}, {info.max:g}] "
+                            "(zero, negative, subnormal or not finite)")
+            elif tensor.dtype == torch.int8:
+                if tensor.numel() and int(tensor.min()) < -127:
+                    return f"layer {layer} {name}: int8 data outside [-127, 127]"
+            elif tensor.numel() and not bool(torch.isfinite(tensor.float()).all()):
+                return f"layer {layer} {name}: values that are not finite"
+    return None
+
+
 def map_from_parts(
     tensors: Mapping[str, torch.Tensor],
     cache: KVCache,
@@ -297,6 +328,8 @@ def map_from_parts(
     """Rebuild the KeyframeMap from a file's keyframe tensors and its K/V already in ``cache``
     (converted to ``dtype``/``device`` when they differ from the file's)."""
     keyframes = _keyframes(tensors, info, source)
+    if problem := cache_problem(cache):
+        raise MapCorruptedError(f"{source}: {problem}")
     if (dtype is not None and dtype != cache.dtype) or (
         device is not None and torch.device(device) != cache.device
     ):

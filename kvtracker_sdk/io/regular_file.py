@@ -36,11 +36,12 @@ def read_regular_bytes(
         fd = os.open(path, flags)
     except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
         raise error(f"{what} {path}: cannot read it ({exc})") from exc
+    mode = os.fstat(fd).st_mode
+    if not stat.S_ISREG(mode):  # checked before fdopen, which raises on a folder
+        os.close(fd)
+        kind = next((name for test, name in _NOT_REGULAR if test(mode)), "not a regular file")
+        raise error(f"{what} {path}: is {kind}, not a regular file")
     with os.fdopen(fd, "rb") as handle:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            kind = next((name for test, name in _NOT_REGULAR if test(mode)), "not a regular file")
-            raise error(f"{what} {path}: is {kind}, not a regular file")
         try:
             return handle.read()
         except OSError as exc:

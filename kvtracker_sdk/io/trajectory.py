@@ -26,7 +26,7 @@ import numpy as np
 from kvtracker_sdk.errors import TrajectoryError
 from kvtracker_sdk.geometry.se3 import quat_xyzw_from_rotation, rotation_from_quat_xyzw
 from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.regular_file import read_regular_text
+from kvtracker_sdk.user_files import read_user_text
 
 __all__ = [
     "Trajectory",
@@ -37,6 +37,9 @@ __all__ = [
     "write_tum",
 ]
 
+# ~600k TUM lines (hours of 100 Hz motion capture); parsing costs several times the file's size,
+# so a larger (or endless: /dev/zero behind a symlink) file is refused before it is read
+MAX_TRAJECTORY_BYTES = 64 << 20
 _TUM_COLUMNS = 8
 _KITTI_COLUMNS = 12
 PathLike: TypeAlias = "str | os.PathLike[str]"
@@ -146,8 +149,9 @@ def write_kitti(path: PathLike, trajectory: Trajectory) -> None:
 
 def _data_lines(path: PathLike) -> list[tuple[int, list[str]]]:
     """(line number, fields) of every non-blank, non-comment line."""
-    # a FIFO or a device would block or never end: only a regular file is read
-    text = read_regular_text(path, TrajectoryError, what="trajectory file")
+    # a FIFO or a device would block or never end: only a regular file is read, up to a cap
+    text = read_user_text(path, TrajectoryError, what="trajectory file",
+                          max_bytes=MAX_TRAJECTORY_BYTES)
     lines = []
     for number, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()

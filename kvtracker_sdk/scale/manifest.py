@@ -27,23 +27,57 @@ folder) with a ground-truth trajectory (given, or shipped by the source) and its
 intrinsics file given as ``camera``, or the one the dataset publishes). A *simulated* sequence
 drives ``SimulatedBackend`` over a ground-truth trajectory (a TUM file or a generated orbit): it
 needs no weights. Every sequence runs once per configuration.
+
+The file is read with ``user_files`` (regular files only, at most 1 MB, bounded nesting, safe
+YAML with alias-bomb protection) and every number is checked against a plausible range (frame
+counts up to ``MAX_FRAMES``, rendered sizes, noise, threads): ``ConfigError`` naming the field.
+Sequence and config names become folder names under ``--out``: letters, digits, ``_``, ``-``
+and ``.``, never ``.`` or ``..`` (``safe_name``).
 """
 
 from __future__ import annotations
 
-import json
+import re
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import ConfigError, install_command
+from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.runs.backends import BackendSpec
+from kvtracker_sdk.user_files import load_user_document
 
-__all__ = ["EvalManifest", "ModelSpec", "SequenceSpec", "SimulatedSpec", "load_manifest"]
+__all__ = [
+    "MAX_FRAMES",
+    "EvalManifest",
+    "ModelSpec",
+    "SequenceSpec",
+    "SimulatedSpec",
+    "load_manifest",
+    "safe_name",
+]
 
 _MAX_MANIFEST_BYTES = 1 << 20  # a manifest lists sequences; anything larger is not one
+# backends.simulated_scene.MAX_FRAMES, the frames a simulated camera can number (a test pins the
+# two equal): not imported, so that reading a manifest does not load torch
+MAX_FRAMES = 224 * 224
+_MAX_SEQUENCES = 10_000
+_NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+_MAX_SIDE = 4096  # rendered frame side (px); the networks run at a few hundred
+_SEED_MAX = 2**63 - 1  # numpy's generators take a non-negative 64-bit seed
+
+
+def safe_name(name: object, field: str = "name") -> str:
+    """``name`` if it can be one folder name under an output folder: 1-64 letters, digits,
+    ``_``, ``-`` or ``.``, and not ``.`` or ``..``; ``ConfigError`` naming ``field`` otherwise.
+    (No separator, no absolute path, no parent: a joined path stays inside the folder.)"""
+    if not isinstance(name, str) or not _NAME.fullmatch(name) or name in (".", ".."):
+        raise ConfigError(
+            f"{field} {name!r:.80} must be 1-64 letters, digits, '_', '-' or '.' "
+            "(and not '.' or '..'): it names a folder inside --out"
+        )
+    return name
 
 
 class _Strict(BaseModel):
@@ -61,31 +95,51 @@ class SimulatedSpec(_Strict):
     """A simulated camera: ``ground_truth`` (TUM file) or a generated orbit of ``orbit_frames``."""
 
     ground_truth: Path | None = None
-    frames: int | None = Field(default=None, ge=1)  # first N poses of the ground truth
-    orbit_frames: int | None = Field(default=None, ge=2)
-    orbit_turns: float = Field(default=1.0, gt=0)
-    size: tuple[int, int] = (196, 252)  # rendered frame HxW (Pi3's model size at d=224: no resize)
-    noise_cm: float = Field(default=1.0, ge=0)
-    noise_deg: float = Field(default=0.3, ge=0)
-    loss: tuple[int, int] | None = None  # frames [start, stop) with the camera covered
-    seed: int = 0
+    # first N poses of the ground truth
+    frames: int | None = Field(default=None, ge=1, le=MAX_FRAMES, strict=True)
+    orbit_frames: int | None = Field(default=None, ge=2, le=MAX_FRAMES, strict=True)
+    orbit_turns: float = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False, strict=True)
+    # rendered frame HxW (Pi3's model size at d=224: no resize)
+    size: tuple[
+        Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
+        Annotated[int, Field(ge=14, le=_MAX_SIDE, strict=True)],
+    ] = (196, 252)
+    noise_cm: float = Field(default=1.0, ge=0, le=1000, allow_inf_nan=False, strict=True)  # up to 10 m
+    noise_deg: float = Field(default=0.3, ge=0, le=180, allow_inf_nan=False, strict=True)
+    # frames [start, stop) with the camera covered
+    loss: tuple[
+        Annotated[int, Field(ge=0, le=MAX_FRAMES, strict=True)],
+        Annotated[int, Field(ge=0, le=MAX_FRAMES, strict=True)],
+    ] | None = None
+    seed: int = Field(default=0, ge=0, le=_SEED_MAX, strict=True)
 
     @model_validator(mode="after")
     def _one_trajectory(self) -> SimulatedSpec:
         if (self.ground_truth is None) == (self.orbit_frames is None):
             raise ValueError("give exactly one of ground_truth and orbit_frames")
+        if self.loss is not None and self.loss[0] >= self.loss[1]:
+            raise ValueError(f"loss [start, stop) needs start < stop, got {list(self.loss)}")
         return self
 
 
 class SequenceSpec(_Strict):
     """One sequence: a real ``source`` with its ``ground_truth``, or a ``simulated`` camera."""
 
-    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")
+    name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$")  # a folder under --out: safe_name
     source: Path | None = None
     ground_truth: Path | None = None
     camera: Path | None = None  # intrinsics file; None: the dataset's published camera, if any
-    frames: int | None = Field(default=None, ge=1)  # first N frames of the source
+    # first N frames of the source
+    frames: int | None = Field(default=None, ge=1, le=10_000_000, strict=True)
     simulated: SimulatedSpec | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _folder_name(cls, name: str) -> str:
+        try:
+            return safe_name(name, "sequence name")
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from exc
 
     @model_validator(mode="after")
     def _real_or_simulated(self) -> SequenceSpec:
@@ -103,22 +157,28 @@ class EvalManifest(_Strict):
 
     model: ModelSpec | None = None
     configs: dict[str, dict[str, Any]] = Field(default_factory=_default_configs)
-    sequences: tuple[SequenceSpec, ...] = Field(min_length=1)
+    sequences: tuple[SequenceSpec, ...] = Field(min_length=1, max_length=_MAX_SEQUENCES)
     # torch threads per task: results are bit-identical whatever engine runs them only when
     # every run uses the same thread count (reductions split differently otherwise)
-    threads_per_task: int = Field(default=1, ge=1)
+    threads_per_task: int = Field(default=1, ge=1, le=1024, strict=True)
 
     @model_validator(mode="after")
     def _checked(self) -> EvalManifest:
         names = [s.name for s in self.sequences]
         if len(set(names)) != len(names):
             raise ValueError(f"sequence names must be unique, got {names}")
+        if not self.configs:
+            raise ValueError("configs must name at least one configuration")
         real = any(s.source is not None for s in self.sequences)
         for name in self.configs:
-            if not name or not name.replace("_", "").replace("-", "").isalnum():
-                raise ValueError(f"config name {name!r}: letters, digits, '-' and '_' only")
-            self.tracker_config(name)  # ConfigError now, not in a worker later
-            if real and self.backend_spec(name) is None:
+            if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", name):
+                raise ValueError(f"config name {name!r:.80}: 1-64 letters, digits, '-' and '_' only")
+            try:
+                self.tracker_config(name)  # ConfigError now, not in a worker later
+                spec = self.backend_spec(name)
+            except ConfigError as exc:
+                raise ValueError(f"configs.{name}: {exc}") from exc
+            if real and spec is None:
                 raise ValueError("real sequences need a model (model.weights) or a backend in "
                                  f"config {name!r}")
         return self
@@ -144,8 +204,12 @@ class EvalManifest(_Strict):
 
 
 def _resolve(document: Any, base: Path) -> Any:
-    """Relative paths in the known path fields, made absolute against ``base``."""
-    for sequence in document.get("sequences", []) if isinstance(document, dict) else []:
+    """Relative paths in the known path fields, made absolute against ``base``. Fields of the
+    wrong type are left as they are, for the schema to name."""
+    if not isinstance(document, dict):
+        return document
+    sequences = document.get("sequences")
+    for sequence in sequences if isinstance(sequences, list) else []:
         if not isinstance(sequence, dict):
             continue
         for key in ("source", "ground_truth", "camera"):
@@ -164,24 +228,12 @@ def _resolve(document: Any, base: Path) -> Any:
     return document
 
 
+
 def load_manifest(path: str | Path) -> EvalManifest:
-    """Read and validate a manifest (JSON, or YAML if PyYAML is installed). ConfigError if bad."""
-    target = Path(path)
-    try:
-        if not target.is_file():
-            raise ConfigError(f"manifest {target}: not a regular file")
-        if target.stat().st_size > _MAX_MANIFEST_BYTES:
-            raise ConfigError(f"manifest {target}: larger than {_MAX_MANIFEST_BYTES} bytes")
-        text = target.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise ConfigError(f"manifest {target}: cannot read it ({exc})") from exc
-    try:
-        if target.suffix.lower() in (".yaml", ".yml"):
-            document = _load_yaml(target, text)
-        else:
-            document = json.loads(text)
-    except (ValueError, RecursionError) as exc:
-        raise ConfigError(f"manifest {target}: not valid JSON/YAML ({exc})") from exc
+    """Read and validate a manifest (JSON, or YAML if PyYAML is installed). ConfigError, naming
+    the field, if it is not a regular file, too large, malformed or holds a value out of range."""
+    document = load_user_document(path, ConfigError, what="manifest", max_bytes=_MAX_MANIFEST_BYTES)
+    target = Path(path)  # load_user_document checked its type
     try:
         return EvalManifest.model_validate(_resolve(document, target.parent.resolve()))
     except ValidationError as exc:
@@ -196,7 +248,7 @@ _HINT = ("see `kvtracker eval-many --help` and the example manifests in examples
 
 def _field_problems(error: ValidationError) -> list[str]:
     """One plain line per invalid field, e.g. ``sequences[0].name: Field required``."""
-    problems = error.errors(include_url=False)
+    problems = error.errors(include_url=False, include_input=False)[:20]  # never echo values
     lines = []
     for problem in problems:
         inner = [p for p in problems if p["loc"][: len(problem["loc"])] == problem["loc"]]
@@ -205,17 +257,7 @@ def _field_problems(error: ValidationError) -> list[str]:
         where = ""
         for part in problem["loc"]:
             where += f"[{part}]" if isinstance(part, int) else (f".{part}" if where else str(part))
-        message = str(problem["msg"]).removeprefix("Value error, ")
+        message = str(problem["msg"]).removeprefix("Value error, ")[:300]
         lines.append(f"{where or 'manifest'}: {message}")
     return lines
 
-
-def _load_yaml(target: Path, text: str) -> Any:
-    try:
-        import yaml  # optional: PyYAML
-    except ImportError as exc:
-        raise ConfigError(f"manifest {target}: YAML needs PyYAML ({install_command('yaml')})") from exc
-    try:
-        return yaml.safe_load(text)  # safe_load: never constructs Python objects
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"manifest {target}: not valid YAML ({exc})") from exc

@@ -22,17 +22,24 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import EvaluationError, KVTrackerError
+from kvtracker_sdk.errors import ConfigError, EvaluationError, KVTrackerError
 from kvtracker_sdk.io.atomic import atomic_write
 from kvtracker_sdk.io.trajectory import Trajectory, write_tum
 from kvtracker_sdk.runs.frames import FrameSelection
 from kvtracker_sdk.runs.run_loop import InputFrame
-from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec
+from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec, safe_name
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
 
-__all__ = ["BackendProvider", "SequenceResult", "run_sequence", "simulated_sequence", "torch_threads"]
+__all__ = [
+    "BackendProvider",
+    "SequenceResult",
+    "output_folder",
+    "run_sequence",
+    "simulated_sequence",
+    "torch_threads",
+]
 
 BackendProvider = Callable[[], "Backend"]  # the config's backend, opened at most once per worker
 
@@ -98,6 +105,16 @@ def simulated_sequence(spec: SimulatedSpec) -> tuple[Backend, Iterator[InputFram
     return backend, frames, Trajectory(truth.timestamps, truth.poses)
 
 
+def output_folder(out_dir: Path, sequence: str, config: str) -> Path:
+    """``out_dir/<sequence>/<config>``, the names validated (``safe_name``), never joined raw: a
+    name ``..``, an absolute path or one with a separator would put files outside ``out_dir``."""
+    folder = Path(out_dir) / safe_name(sequence, "sequence name") / safe_name(config, "config name")
+    root = Path(out_dir).resolve()
+    if not folder.resolve().is_relative_to(root):  # a symlink inside out_dir leading out
+        raise ConfigError(f"output folder {folder} leads outside --out {root}")
+    return folder
+
+
 def run_sequence(
     spec: SequenceSpec,
     config_name: str,
@@ -117,6 +134,7 @@ def run_sequence(
     from kvtracker_sdk.runs.inputs import open_input
     from kvtracker_sdk.runs.session import open_tracker, track
 
+    folder = output_folder(out_dir, spec.name, config_name)  # before any work: a bad name fails fast
     start = time.perf_counter()
     with torch_threads(threads):
         if spec.simulated is not None:
@@ -151,7 +169,6 @@ def run_sequence(
         spec.simulated is not None, len(results), len(valid), keyframes,
         ate, rpe_t, rpe_r, error, time.perf_counter() - start, worker, model_loads(),
     )
-    folder = out_dir / spec.name / config_name
     folder.mkdir(parents=True, exist_ok=True)
     if len(valid):
         write_tum(folder / "trajectory.txt", estimate)

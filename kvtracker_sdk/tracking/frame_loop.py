@@ -102,6 +102,8 @@ class FrameLoop:
         (its mask is not the object's)."""
         self.collect(index, timings)
         step = self._process(frame, index, timings, keyframe_allowed)
+        if step.valid and (step.pose is None or not np.all(np.isfinite(step.pose.T_world_cam))):
+            step = step._replace(valid=False)  # last line: a non-finite pose is never valid
         step = self._align_world(step, index, gravity)
         tracked = self.snapshot.pose
         if step.valid and step.pose is not None:
@@ -198,9 +200,15 @@ class FrameLoop:
         tracked = track_checked(self.backend, frame.image, kf_map.cache, self.config.heads, index)
         self.predicted_K = tracked.intrinsics  # the network's K of the model image, if any
         try:
-            pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow is refused just below
+                pose = Pose(kf_map.gauge.apply_to_pose(tracked.pose))
         except ValueError as exc:  # a malformed pose from the backend
             raise TrackingFailedError(f"tracking frame {index} returned a bad pose") from exc
+        if not np.all(np.isfinite(pose.T_world_cam)):  # a finite raw pose times a huge gauge
+            raise TrackingFailedError(
+                f"tracking frame {index}: the world pose is not finite (map gauge "
+                f"scale {kf_map.gauge.scale!r})"
+            )
         self._failed_tracks_in_row = 0
         return pose, frame_confidence(tracked.confidence, tracked.confidence_map, frame.mask)
 

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from kvtracker_sdk.errors import MissingDependencyError
+from kvtracker_sdk.errors import ConfigError, MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_wxyz_from_rotation
 from kvtracker_sdk.io.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
@@ -74,6 +74,9 @@ class Viewer:
         min_confidence: float = 0.5,
         title: str = "kvtracker",
     ) -> None:
+        # checked before serving: viser retries port after port past 65535 and never returns
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+            raise ConfigError(f"port must be a whole number in 0..65535 (0: any free), got {port!r:.40}")
         viser = _viser()
         self.image_max_side, self.max_points = int(image_max_side), int(max_points)
         self.min_confidence = float(min_confidence)
