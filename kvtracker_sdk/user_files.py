@@ -147,10 +147,8 @@ def _parse_yaml(text: str, error: type[KVTrackerError], what: str) -> Any:
     try:
         import yaml
     except ImportError as exc:
-        raise MissingDependencyError(
-            f"reading {what} as YAML needs PyYAML: pip install 'kvtracker-sdk[yaml]' "
-            "(or write it as JSON)"
-        ) from exc
+        raise MissingDependencyError.for_extra(
+            "yaml", f"reading {what} as YAML needs PyYAML (or write it as JSON)") from exc
     loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # safe either way; C is faster
     try:
         return yaml.load(text, Loader=loader)  # noqa: S506 - a safe loader

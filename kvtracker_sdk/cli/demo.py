@@ -71,7 +71,7 @@ def demo(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("kvtracker_demo"),
     gt: Annotated[Path | None, typer.Option(
         "--gt", help="Drive the simulation with this TUM groundtruth.txt instead of the built-in "
-        "hand-held orbit. [default: none: the orbit]")] = None,
+        "orbit. [default: none: the orbit]")] = None,
     frames: Annotated[int | None, typer.Option(min=1, max=MAX_SIMULATED_FRAMES,
         help="Frames to run (at 30 Hz). [default: 600 for the orbit, all of --gt]")] = None,
     size: Annotated[str, typer.Option(help="Rendered frame size HEIGHTxWIDTH.")] = "240x320",
