@@ -25,6 +25,7 @@ DEFAULT_WEIGHTS = "yyfz233/Pi3"  # the official Pi3 checkpoint on the Hugging Fa
 
 
 class BackendKind(str, enum.Enum):
+    AUTO = "auto"  # resolved by cli/tune.py's auto_choice before a backend is opened
     TORCH = "torch"
     ONNX = "onnx"
     OPENVINO = "openvino"

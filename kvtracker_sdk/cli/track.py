@@ -34,11 +34,14 @@ def track(
     out: Annotated[Path, typer.Option("--out", "-o", help=_OUT_HELP)] = Path("kvtracker_out"),
     weights: Annotated[str, typer.Option(
         help="Checkpoint: a .safetensors file, a folder holding one, or a hub id.")] = DEFAULT_WEIGHTS,
-    backend: Annotated[BackendKind, typer.Option(help="Inference runtime.")] = BackendKind.TORCH,
+    backend: Annotated[BackendKind, typer.Option(
+        help="Inference runtime; auto: the one `kvtracker tune` chose on this machine for these "
+        "weights, resolution and keyframe budget (else torch).")] = BackendKind.AUTO,
     device: Annotated[str, typer.Option(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
-    dtype: Annotated[ComputeDtype, typer.Option(
-        help="Compute dtype (torch), precision hint (openvino).")] = ComputeDtype.FLOAT32,
+    dtype: Annotated[ComputeDtype | None, typer.Option(
+        help="Compute dtype (torch), precision hint (openvino). [default: float32, or auto's]")
+    ] = None,
     threads: Annotated[int | None, typer.Option(
         help="CPU threads for inference (torch, openvino). [default: the runtime's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
@@ -131,6 +134,7 @@ def track(
         ground_truth=source.ground_truth(), save_map=save_map,
     )
     check_outputs(options)  # before the weights load and the first frame, not after the run
+    backend, dtype, threads = _resolve_auto(backend, weights, device, dtype, threads, config)
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
         with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map,
@@ -176,6 +180,25 @@ def _check_object_inputs(
         raise ConfigError(
             "--bbox is for object mode (--mode object); scene mode tracks the whole frame"
         )
+
+
+def _resolve_auto(
+    kind: BackendKind, weights: str, device: str, dtype: ComputeDtype | None,
+    threads: int | None, config: TrackerConfig,
+) -> tuple[BackendKind, ComputeDtype, int | None]:  # fmt: skip
+    """``--backend auto``: the tuned choice (``cli/tune.py``) unless ``--dtype`` or ``--threads``
+    says otherwise or the device is not the CPU (tuning measures CPUs); then torch."""
+    if kind is not BackendKind.AUTO:
+        return kind, dtype or ComputeDtype.FLOAT32, threads
+    if dtype is not None or threads is not None or device != "cpu":
+        return BackendKind.TORCH, dtype or ComputeDtype.FLOAT32, threads
+    from kvtracker_sdk.cli.tune import auto_choice
+
+    budget = config.keyframing.budget.max_keyframes or 32
+    chosen, chosen_dtype, chosen_threads, _ = auto_choice(
+        weights, resolution=config.resolution, keyframes=budget
+    )
+    return chosen, ComputeDtype(chosen_dtype), chosen_threads
 
 
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:
