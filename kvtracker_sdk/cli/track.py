@@ -134,7 +134,7 @@ def track(
         ground_truth=source.ground_truth(), save_map=save_map,
     )
     check_outputs(options)  # before the weights load and the first frame, not after the run
-    backend, dtype, threads = _resolve_auto(backend, weights, device, dtype, threads, config)
+    backend, dtype, threads, why = _resolve_auto(backend, weights, device, dtype, threads, config)
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
         with _tracker(config, base, changes, chosen, load_map, rebuild=rebuild_map,
@@ -142,6 +142,8 @@ def track(
             description = RunDescription(
                 "track", str(input_path), simulated=False,
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map),
+                         "backend_choice": {"backend": backend.value, "dtype": dtype.value,
+                                            "threads": threads, "reason": why},
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box,
@@ -185,20 +187,22 @@ def _check_object_inputs(
 def _resolve_auto(
     kind: BackendKind, weights: str, device: str, dtype: ComputeDtype | None,
     threads: int | None, config: TrackerConfig,
-) -> tuple[BackendKind, ComputeDtype, int | None]:  # fmt: skip
+) -> tuple[BackendKind, ComputeDtype, int | None, str]:  # fmt: skip
     """``--backend auto``: the tuned choice (``cli/tune.py``) unless ``--dtype`` or ``--threads``
-    says otherwise or the device is not the CPU (tuning measures CPUs); then torch."""
+    says otherwise or the device is not the CPU (tuning measures CPUs); then torch. Returns the
+    runtime, dtype, threads and why (recorded in run.json)."""
     if kind is not BackendKind.AUTO:
-        return kind, dtype or ComputeDtype.FLOAT32, threads
+        return kind, dtype or ComputeDtype.FLOAT32, threads, "--backend given"
     if dtype is not None or threads is not None or device != "cpu":
-        return BackendKind.TORCH, dtype or ComputeDtype.FLOAT32, threads
+        why = "--backend auto with --dtype, --threads or a non-CPU --device: torch"
+        return BackendKind.TORCH, dtype or ComputeDtype.FLOAT32, threads, why
     from kvtracker_sdk.cli.tune import auto_choice
 
     budget = config.keyframing.budget.max_keyframes or 32
-    chosen, chosen_dtype, chosen_threads, _ = auto_choice(
+    chosen, chosen_dtype, chosen_threads, why = auto_choice(
         weights, resolution=config.resolution, keyframes=budget
     )
-    return chosen, ComputeDtype(chosen_dtype), chosen_threads
+    return chosen, ComputeDtype(chosen_dtype), chosen_threads, why
 
 
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:

@@ -17,7 +17,7 @@ from __future__ import annotations
 import importlib.util
 import json
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -131,11 +131,6 @@ def auto_choice(
     candidate, reason = kept
     _log.info("backend auto", choice=candidate.name, reason=reason)
     return BackendKind(candidate.runtime), candidate.dtype, candidate.threads, reason
-
-
-def describe_choice(choice: tuple[BackendKind, str, int | None, str]) -> dict[str, Any]:
-    kind, dtype, threads, why = choice
-    return {"backend": kind.value, "dtype": dtype, "threads": threads, "reason": why}
 
 
 def register(app: typer.Typer) -> None:

@@ -20,8 +20,9 @@ def test_tune_keeps_a_choice_that_track_auto_uses(
     monkeypatch.setenv("KVTRACKER_CACHE_DIR", str(tmp_path))
     config = TrackerConfig().updated(resolution=224, keyframing={"budget": {"max_keyframes": 2}})
     # nothing tuned yet: torch float32, automatic threads (as before)
-    assert _resolve_auto(BackendKind.AUTO, str(golden_weights), "cpu", None, None, config) == (
-        BackendKind.TORCH, ComputeDtype.FLOAT32, None)  # fmt: skip
+    untuned = _resolve_auto(BackendKind.AUTO, str(golden_weights), "cpu", None, None, config)
+    assert untuned[:3] == (BackendKind.TORCH, ComputeDtype.FLOAT32, None)
+    assert "kvtracker tune --weights" in untuned[3]
     result = invoke("tune", "--weights", golden_weights, "--runtime", "torch", "--resolution",
                     224, "--keyframes", 2, "--seconds", 0.2, "--json")  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -32,15 +33,16 @@ def test_tune_keeps_a_choice_that_track_auto_uses(
     assert {c["name"].rsplit("-", 1)[0] for c in record["candidates"]} == {"torch-fp32",
                                                                           "torch-bf16"}  # fmt: skip
     assert "within torch bf16's" in record["reason"]
-    kind, dtype, threads = _resolve_auto(
+    kind, dtype, threads, why = _resolve_auto(
         BackendKind.AUTO, str(golden_weights), "cpu", None, None, config
     )
     assert (kind.value, dtype.value, threads) == ("torch", chosen["dtype"], chosen["threads"])
+    assert why == record["reason"]
     # told otherwise: --dtype / --threads / another device / an explicit backend
     told = _resolve_auto(BackendKind.AUTO, str(golden_weights), "cpu", None, 1, config)
-    assert told == (BackendKind.TORCH, ComputeDtype.FLOAT32, 1)
+    assert told[:3] == (BackendKind.TORCH, ComputeDtype.FLOAT32, 1)
     explicit = _resolve_auto(BackendKind.ONNX, str(golden_weights), "cpu", None, None, config)
-    assert explicit == (BackendKind.ONNX, ComputeDtype.FLOAT32, None)
+    assert explicit[:3] == (BackendKind.ONNX, ComputeDtype.FLOAT32, None)
 
 
 def test_tune_refuses_bad_options(golden_weights: Path) -> None:
