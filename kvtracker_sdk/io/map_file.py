@@ -6,10 +6,11 @@ bytes that fail the header checks, and is refused without being executed.
 
 Saving streams the file (``safetensors_writer``) into a temporary file beside the target while
 other threads hash the same tensors (the header, written first with placeholder digests of the
-same length, is rewritten in place at the end: one pass over the data), fsyncs it and ``os.replace``-s it over the target (then fsyncs the directory): the path holds the
-old map or the complete new one, never half of one, even if the process dies mid-write; the
-temporary file of a killed save is removed by a later save once stale (``atomic``). Loading validates the whole header before
-touching tensor data, then reads every tensor through the same open descriptor (never a memory
+same length, is rewritten in place at the end: one pass over the data), fsyncs it and
+``os.replace``-s it over the target (then fsyncs the directory): the path holds the old map
+or the complete new one, never half of one, even if the process dies mid-write; the temporary
+file of a killed save is removed by a later save once stale (``atomic``). Loading validates
+the whole header before touching tensor data, then reads every tensor through the same open descriptor (never a memory
 map, see ``map_reader``) straight into its final buffer — the K/V into the cache's preallocated
 buffers — and verifies every tensor's sha256.
 
