@@ -14,9 +14,10 @@ them), in one process:
    interleaved rounds (order rotated per round), ``--rounds`` steps each; a path's time is its
    median wall time per step.
 
-Reported per point: ``auto``'s pick against the fastest fixed choice (the issue wants within
-5 %), and the fastest path against the faster official thread count (official-bf16, as the
-official code runs). The map is the tuner's: synthetic frames mapped by the fp32 backend (its
+Reported per point: ``auto``'s pick against the fastest fixed choice whose pose deviation is
+within torch bf16's (the rule ``auto`` applies; the issue wants within 5 %) and against the
+fastest of all, and ``auto``'s pick and the fastest path against the faster official thread
+count (official-bf16, as the official code runs). ``--render FILE.json`` re-writes the tables. The map is the tuner's: synthetic frames mapped by the fp32 backend (its
 cache rounded to bf16 for the bf16 paths); the heads are the tracker's default (camera +
 confidence). Run from the repository root with the passive OpenMP policy (this script imports
 torch before ``kvtracker_sdk`` could set it)::
@@ -188,17 +189,27 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def best_eligible(result: dict[str, Any]) -> str:
+    """The fastest fixed choice (in the timed grid) that the tuner's precision rule admits."""
+    candidates = result["tuner"]["candidates"]
+    eligible = [name for name in candidates if candidates[name]["eligible"]]
+    return min(eligible, key=result["median_s"].__getitem__)
+
+
 def point_table(result: dict[str, Any]) -> str:
     median, chosen = result["median_s"], result["tuner"]["chosen"]
     official = median[result["official"]]
+    eligible = best_eligible(result)
     lines = [
         f"### {result['model']} {result['size']}x{result['size']}, N = {result['keyframes']} "
         f"(heads {result['heads']}; load average {result['load_averages'][0][0]:.1f}→"
         f"{result['load_averages'][-1][0]:.1f})", "",
-        f"auto (tuner) chose **{chosen}**: {result['auto_over_best_fixed']:.3f}× the fastest "
-        f"fixed choice ({result['best_fixed']}); fastest path {result['best_path']} = "
-        f"**{result['best_path_speedup_vs_official']:.2f}×** the official cached step "
-        f"({result['official']})", "",
+        f"auto (tuner) chose **{chosen}**: **{median[chosen] / median[eligible]:.3f}×** the "
+        f"fastest fixed choice within torch bf16's pose deviation ({eligible}), "
+        f"{result['auto_over_best_fixed']:.3f}× the fastest of all ({result['best_fixed']}); "
+        f"auto = **{official / median[chosen]:.2f}×** and the fastest path "
+        f"({result['best_path']}) {result['best_path_speedup_vs_official']:.2f}× the official "
+        f"cached step ({result['official']})", "",
         "| path | median step (s) | vs official bf16 | pose dev. (tuner) | |",
         "|---|---:|---:|---:|---|",
     ]  # fmt: skip
@@ -222,7 +233,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--onnx-dir", type=Path,
                         default=Path(tempfile.gettempdir()) / "kvtracker-runtimes-onnx")
     parser.add_argument("--name", default="auto_choice")
+    parser.add_argument("--render", type=Path, help="only re-write the .md of a saved JSON")
     args = parser.parse_args(argv)
+    if args.render:
+        saved: dict[str, Any] = json.loads(args.render.read_text())
+        write_tables(saved, args.render.with_suffix(".md"))
+        return saved
     result: dict[str, Any] = {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": "OMP_WAIT_POLICY=PASSIVE python -m benchmarks.auto_choice "
@@ -234,23 +250,26 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "points": [],
     }  # fmt: skip
     RESULTS.mkdir(parents=True, exist_ok=True)
-    tables = []
     for spec in args.points:
         name, size, keyframes = spec.split(":")
         point = Point(name, int(size), int(keyframes), args.onnx_dir)
         result["points"].append(run_point(point, args))
-        tables.append(point_table(result["points"][-1]))
-        print("\n" + tables[-1], flush=True)
+        print("\n" + point_table(result["points"][-1]), flush=True)
         del point
         gc.collect()
         (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1) + "\n")
+    write_tables(result, RESULTS / f"{args.name}.md")
+    print(f"wrote {RESULTS / args.name}.json/.md")
+    return result
+
+
+def write_tables(result: dict[str, Any], path: Path) -> None:
     machine = result["machine"]
     header = (f"# auto vs fixed choices vs the official step — {machine['cpu']}, "
               f"{machine['usable_cores']} cores ({machine['cpu_capability']}), "
               f"{result['date_utc']}\n\n`{result['command']}`\n")  # fmt: skip
-    (RESULTS / f"{args.name}.md").write_text(header + "\n" + "\n\n".join(tables) + "\n")
-    print(f"wrote {RESULTS / args.name}.json/.md")
-    return result
+    tables = [point_table(point) for point in result["points"]]
+    path.write_text(header + "\n" + "\n\n".join(tables) + "\n")
 
 
 if __name__ == "__main__":

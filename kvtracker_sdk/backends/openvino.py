@@ -16,9 +16,12 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 
 ``precision`` "float32" (default) computes the export's function within float rounding;
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
-``openvino_runtime``) that grows with the map: at 32 keyframes DA3-Small's poses deviated about
-twice as much as PyTorch's bf16 (Pi3 ``large``'s did not), and "float32" was nearly as fast
-(README, model choice). ``info.accelerations`` reports what the plugin chose: device, precision,
+``openvino_runtime``) that grows with the map and depends on the CPU: at 32 keyframes
+DA3-Small's poses deviated about twice as much as PyTorch's bf16 on an AMD EPYC with
+AVX512-BF16 (``benchmarks/results/auto_choice.md``; Pi3 ``large``'s did not), 4.6 times as much
+on a Xeon with AMX (as reported), and "float32" was nearly as fast (README, model choice).
+``kvtracker tune`` measures it on the machine at hand and keeps bf16 only within PyTorch bf16's
+deviation (``backends/autotune.py``). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
 
 openvino is imported when a backend is created (``MissingDependencyError`` names the
