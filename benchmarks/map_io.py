@@ -15,7 +15,10 @@ Each round, in rotating order:
 - ``load_map`` cold, verified (the default): the file's pages dropped first
   (``posix_fadvise(DONTNEED)`` after an ``fsync``), then the whole load, sha256 checked;
 - ``raw read`` cold: the pages dropped, then the file read once, sequentially, into a
-  preallocated buffer (``readinto``; nothing parsed or hashed).
+  preallocated buffer reused every round (``readinto``; nothing parsed or hashed: its pages are
+  already mapped, which no loader's new memory is);
+- ``raw read`` cold into new memory: the same into a buffer allocated for the read
+  (``bytearray`` of the file's size, as any reader of the whole file needs).
 
 The ratios are per round (save / write, load / read), reported as their median, with every
 sample and the load averages in the JSON. Run from the repository root::
@@ -134,9 +137,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             drop_page_cache(target)
             raw_read(target, buffer)
 
+        def read_new() -> None:
+            drop_page_cache(target)
+            raw_read(target, bytearray(len(data)))
+
         steps: dict[str, Callable[[], object]] = {
             "save_map": save, "write + fsync": lambda: write_fsync(copy, data),
             "load_map cold verified": load, "raw read cold": read,
+            "raw read cold, new memory": read_new,
         }  # fmt: skip
         samples: dict[str, list[float]] = {name: [] for name in steps}
         loads = [os.getloadavg()]
@@ -152,6 +160,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     save_ratios = [s / w for s, w in zip(samples["save_map"], samples["write + fsync"], strict=True)]
     load_ratios = [lo / r for lo, r in zip(samples["load_map cold verified"],
                                            samples["raw read cold"], strict=True)]  # fmt: skip
+    load_new_ratios = [lo / r for lo, r in zip(samples["load_map cold verified"],
+                                               samples["raw read cold, new memory"], strict=True)]  # fmt: skip
     result = {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         "command": "python -m benchmarks.map_io " + " ".join(argv or []),
@@ -162,6 +172,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "median_s": {name: statistics.median(s) for name, s in samples.items()},
         "save_over_write_fsync": {"median": statistics.median(save_ratios), "rounds": save_ratios},
         "load_over_raw_read": {"median": statistics.median(load_ratios), "rounds": load_ratios},
+        "load_over_raw_read_new_memory": {"median": statistics.median(load_new_ratios),
+                                          "rounds": load_new_ratios},
     }  # fmt: skip
     lines = [f"map file {size / 1e6:.0f} MB ({args.keyframes} keyframes, Pi3 large layout, "
              f"224, bf16); {args.rounds} rounds; load average {loads[0][0]:.1f}→{loads[-1][0]:.1f}",
@@ -170,6 +182,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
              "load_map cold verified": result["load_over_raw_read"]["median"]}  # fmt: skip
     for name, seconds in result["median_s"].items():
         text = f"{ratio[name]:.2f}×" if name in ratio else "reference"
+        if name == "load_map cold verified":
+            text += f" ({result['load_over_raw_read_new_memory']['median']:.2f}× new memory)"
         lines.append(f"| {name} | {seconds:.3f} | {size / 1e9 / seconds:.2f} | {text} |")
     table = "\n".join(lines)
     result["table"] = table

@@ -15,11 +15,6 @@ a FIFO in between, whose ``open`` blocks forever. So a map is read as follows:
 
 This is also one copy fewer than a memory map followed by the cache's copy (see
 ``benchmarks/map_load.py``).
-
-Speed (``benchmarks/map_io.py``): the tensors are read in file order, and a prefetch thread asks
-the kernel to read the file ahead of the readers (``posix_fadvise(WILLNEED)``, window by window),
-so the disk stays busy while the readers hash what has arrived: a verified load is one pass at
-about the speed of reading the file.
 """
 
 from __future__ import annotations
@@ -28,7 +23,6 @@ import contextlib
 import hashlib
 import os
 import stat
-import threading
 from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -47,7 +41,6 @@ __all__ = ["MapFile", "open_map_file", "read_map_tensors"]
 # hashlib and pread release the GIL, so tensors are read and hashed in parallel; 4 threads
 # saturate memory bandwidth on common machines.
 _WORKERS = max(1, min(4, os.cpu_count() or 1))
-_PREFETCH_WINDOW = 16 << 20  # bytes asked for per posix_fadvise call
 _OPEN_FLAGS = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
 _TORCH_DTYPES = {
     "U8": torch.uint8, "I64": torch.int64, "F64": torch.float64, "F32": torch.float32,
@@ -140,33 +133,6 @@ def _read_tensor(file: MapFile, chunks: list[tuple[memoryview, int]], verify: bo
     return None if digest is None else digest.hexdigest()
 
 
-def _prefetch(file: MapFile, start: int, stop: threading.Event) -> None:
-    """Ask the kernel to read ``file`` from ``start`` ahead of the readers (a hint: errors and
-    platforms without ``posix_fadvise`` only lose the overlap)."""
-    advise = getattr(os, "posix_fadvise", None)
-    offset = start
-    while advise is not None and offset < file.size and not stop.is_set():
-        try:
-            advise(file.fd, offset, _PREFETCH_WINDOW, os.POSIX_FADV_WILLNEED)
-        except OSError:
-            return
-        offset += _PREFETCH_WINDOW
-
-
-@contextlib.contextmanager
-def _prefetching(file: MapFile, start: int) -> Iterator[None]:
-    """``_prefetch`` on a thread for the block's duration (joined before the descriptor can be
-    closed, so no hint ever reaches a file opened later under the same number)."""
-    stop = threading.Event()
-    thread = threading.Thread(target=_prefetch, args=(file, start, stop), daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join()
-
-
 def read_map_tensors(
     file: MapFile,
     info: MapInfo,
@@ -213,11 +179,9 @@ def read_map_tensors(
         if name not in jobs and name not in kept_names:
             keyframe_tensors[name] = torch.empty(spec.shape, dtype=_TORCH_DTYPES[spec.dtype])
             jobs[name] = [(_bytes_of(keyframe_tensors[name]), offsets[name])]
-    in_file_order = sorted(jobs, key=lambda name: jobs[name][0][1] if jobs[name] else 0)
-    first = min((jobs[name][0][1] for name in in_file_order if jobs[name]), default=file.size)
-    with _prefetching(file, first), ThreadPoolExecutor(max_workers=_WORKERS) as pool:
-        digests = pool.map(lambda name: _read_tensor(file, jobs[name], verify), in_file_order)
-        named = dict(zip(in_file_order, digests, strict=True))
+    with ThreadPoolExecutor(max_workers=_WORKERS) as pool:
+        digests = pool.map(lambda chunks: _read_tensor(file, chunks, verify), jobs.values())
+        named = dict(zip(jobs, digests, strict=True))
     file.check_unchanged()
     if verify:  # the kept indices were checked above; the caller's check must not miss them
         named.update({name: info.tensor_sha256[name] for name in kept_names})

@@ -1,19 +1,16 @@
-"""The one-pass save and load paths (``benchmarks/map_io.py`` measures their speed): a header
-rewritten in place once the data's digests are known, writeback hints, read-ahead hints."""
+"""The one-pass save (``benchmarks/map_io.py`` measures its speed): a header rewritten in place
+once the data's digests are known, and writeback hints."""
 
 from __future__ import annotations
 
 import io
-import os
-import threading
 from pathlib import Path
 
 import pytest
 import torch
 from safetensors import safe_open
 
-from kvtracker_sdk.io import map_reader
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file import read_map_info, save_map
 from kvtracker_sdk.io.map_tensors import map_to_tensors, sha256_of
 from kvtracker_sdk.io.safetensors_writer import write_safetensors
 from kvtracker_sdk.io.writeback import start_writeback
@@ -44,28 +41,6 @@ def test_a_saved_map_carries_the_digests_of_its_tensors(tmp_path: Path) -> None:
     assert info.tensor_sha256 == expected  # what save returned ...
     assert read_map_info(tmp_path / "m.kvmap").tensor_sha256 == expected  # ... and wrote
     assert "0" * 64 not in (tmp_path / "m.kvmap").read_bytes()[:200_000].decode("latin-1")
-
-
-def test_read_ahead_hints_never_outlive_the_load_nor_break_it(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    path = tmp_path / "m.kvmap"
-    save_map(path, make_map(seed=4), backend_info=backend_info(), tracker_config_json="{}",
-             mode="scene")  # fmt: skip
-    hinted: list[int] = []
-
-    def advise(fd: int, offset: int, length: int, advice: int) -> None:
-        hinted.append(offset)
-        if len(hinted) > 1:
-            raise OSError("hint refused")
-
-    monkeypatch.setattr(map_reader, "_PREFETCH_WINDOW", 512)
-    monkeypatch.setattr(os, "posix_fadvise", advise, raising=False)
-    before = threading.active_count()
-    loaded = load_map(path)  # checksums verified
-    assert threading.active_count() == before  # the prefetch thread was joined
-    assert hinted[:2] == [hinted[0], hinted[0] + 512] and len(hinted) == 2  # stopped at the error
-    assert loaded.keyframe_map.num_keyframes == make_map(seed=4).num_keyframes
 
 
 def test_writeback_hints_are_harmless(tmp_path: Path) -> None:
