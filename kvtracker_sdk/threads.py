@@ -7,8 +7,15 @@ default (active) wait policy a waiting thread spins for a while, taking the core
 needs. So:
 
 - ``import kvtracker_sdk`` sets ``OMP_WAIT_POLICY=PASSIVE`` (waiting threads sleep) unless the
-  variable is set or torch was imported first (OpenMP reads it once, when torch loads);
-  ``wait_policy()`` reports what torch's OpenMP runs with.
+  variable is set or torch was imported first; ``wait_policy()`` reports what torch's OpenMP
+  runs with. libgomp (torch's OpenMP on Linux) reads the variable once, in its load-time
+  constructor, i.e. when torch is imported (``OMP_DISPLAY_ENV=TRUE`` prints it then), and has
+  no call to change it later: an app that imports torch first keeps the spinning default.
+- So the backends check when they are built (``ThreadSettings.resolve``): with the spinning
+  default that nobody chose (``spins_by_default``), automatic threads are 1 (no OpenMP team, so
+  no thread ever waits: the passive policy's effect) and a warning names the fix; an explicit
+  ``threads`` above 1 is refused with ``ConfigError`` naming the fix (``SPINNING_FIX``). An
+  explicit ``OMP_WAIT_POLICY=ACTIVE`` is a choice and is honoured.
 - ``choose_threads`` picks the intra-op thread count: with passive waiting, every core this
   process may run on (``os.sched_getaffinity``): a sleeping waiter costs nothing, and a process
   with more runnable threads gets a larger share of a busy CPU (measured under a load average of
@@ -30,14 +37,29 @@ import sys
 from dataclasses import dataclass
 
 from kvtracker_sdk.errors import ConfigError
+from kvtracker_sdk.log import get_logger
 
 __all__ = [
+    "SPINNING_FIX",
     "ThreadSettings",
     "choose_threads",
     "prefer_passive_wait",
+    "spins_by_default",
     "usable_cores",
     "wait_policy",
 ]
+
+_log = get_logger(__name__)
+_DEFAULT_POLICY = "active (OpenMP default: waiting threads spin)"
+SPINNING_FIX = (
+    "torch was imported before kvtracker_sdk with OMP_WAIT_POLICY unset, so its OpenMP threads "
+    "spin while they wait (OpenMP read the variable when torch loaded; it cannot be changed "
+    "now), and more than one thread makes every step many times slower whenever another "
+    "process uses the CPU. Fix: import kvtracker_sdk before torch, or start the process with "
+    "OMP_WAIT_POLICY=PASSIVE in its environment (e.g. `OMP_WAIT_POLICY=PASSIVE python app.py`), "
+    "or use threads=1; set OMP_WAIT_POLICY=ACTIVE before start to keep spinning threads on "
+    "purpose"
+)
 
 # what ``prefer_passive_wait`` found when the package was imported (None: not called yet)
 _WAIT_POLICY_AT_IMPORT: str | None = None
@@ -57,7 +79,7 @@ def _policy_in_effect(*, torch_loaded: bool) -> str:
         return _WAIT_POLICY_AT_IMPORT
     value = os.environ.get("OMP_WAIT_POLICY")
     if value is None:
-        return "active (OpenMP default: waiting threads spin)"
+        return _DEFAULT_POLICY
     return value.lower()
 
 
@@ -68,6 +90,12 @@ def wait_policy() -> str:
     variable after that has no effect, so it is not reported.
     """
     return _policy_in_effect(torch_loaded="torch" in sys.modules)
+
+
+def spins_by_default() -> bool:
+    """True when torch's OpenMP runs with the spinning default that nobody chose: torch was loaded
+    before ``kvtracker_sdk`` could set ``OMP_WAIT_POLICY=PASSIVE`` and the variable was unset."""
+    return "torch" in sys.modules and wait_policy() == _DEFAULT_POLICY
 
 
 def usable_cores() -> int:
@@ -105,18 +133,26 @@ class ThreadSettings:
     @classmethod
     def resolve(cls, requested: int | None, current: int) -> ThreadSettings:
         """``requested`` threads (``ConfigError`` below 1), or for None the automatic choice,
-        at most ``current`` (torch's thread count now)."""
+        at most ``current`` (torch's thread count now). With the unchosen spinning policy
+        (``spins_by_default``) the automatic choice is 1 thread (warning logged) and a request
+        above 1 is a ``ConfigError`` naming the fix."""
         cores = usable_cores()
         try:
             load: float | None = os.getloadavg()[0]
         except (AttributeError, OSError):  # Windows
             load = None
-        if requested is None:
+        spinning = spins_by_default()
+        if requested is None and spinning:
+            _log.warning("one torch thread: OpenMP spins", fix=SPINNING_FIX)
+            threads, source = 1, "auto"
+        elif requested is None:
             passive = wait_policy() == "passive"
             chosen = choose_threads(cores, 0.0 if load is None else load, passive=passive)
             threads, source = max(1, min(chosen, current)), "auto"
         elif isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise ConfigError(f"threads must be an int >= 1 or None (automatic), got {requested!r}")
+        elif spinning and requested > 1:
+            raise ConfigError(f"threads={requested} refused: {SPINNING_FIX}")
         else:
             threads, source = requested, "user"
         return cls(threads, source, cores, load, wait_policy())

@@ -6,12 +6,15 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
 from kvtracker_sdk import threads
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.threads import ThreadSettings, choose_threads
+from tests.conftest import OnnxExport
 
 
 @pytest.mark.parametrize(
@@ -81,3 +84,50 @@ def test_torch_backend_applies_and_reports_threads() -> None:
         assert auto.threads.wait_policy == threads.wait_policy()
     finally:
         torch.set_num_threads(before)
+
+
+_TORCH_FIRST = """
+import os, sys, time
+import torch
+from kvtracker_sdk.backends.torch_backend import TorchBackend
+from kvtracker_sdk.errors import ConfigError
+from tests.models.pi3.factories import random_pi3
+torch.set_num_threads(2)
+auto = TorchBackend(random_pi3(seed=1))
+print("auto", auto.threads.threads, torch.get_num_threads())
+try:
+    TorchBackend(random_pi3(seed=1), threads=2)
+    print("refused no")
+except ConfigError as exc:
+    print("refused", "OMP_WAIT_POLICY=PASSIVE" in str(exc) and "import kvtracker_sdk" in str(exc))
+if len(sys.argv) > 1:
+    from kvtracker_sdk.backends.openvino import OpenVinoBackend
+    torch.set_num_threads(2)
+    OpenVinoBackend(sys.argv[1])
+    print("openvino", torch.get_num_threads())
+"""
+
+
+def _torch_first(env: dict[str, str], *args: str) -> list[str]:
+    result = subprocess.run(
+        [sys.executable, "-c", _TORCH_FIRST, *args], env=env, capture_output=True, text=True
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    return result.stdout.split("\n")[:-1]
+
+
+def test_torch_imported_first_gets_no_spinning_threads(
+    onnx_exports: Callable[[str], OnnxExport],
+) -> None:
+    """An app that imports torch before kvtracker_sdk (OMP_WAIT_POLICY unset: libgomp, which
+    read the variable when torch loaded, spins): the torch backend takes one thread by default
+    and refuses two with the fix; the OpenVINO backend sets torch to one thread. A chosen
+    policy (PASSIVE here; ACTIVE takes the same path) is honoured."""
+    pytest.importorskip("openvino")
+    folder = str(onnx_exports("da3").folder)
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parents[1]), env.get("PYTHONPATH", "")])
+    assert _torch_first(env, folder) == ["auto 1 1", "refused True", "openvino 1"]
+    cores = min(2, threads.usable_cores())  # passive: every usable core, at most torch's 2
+    passive = _torch_first({**env, "OMP_WAIT_POLICY": "PASSIVE"})
+    assert passive == [f"auto {cores} {cores}", "refused no"]

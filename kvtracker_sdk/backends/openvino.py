@@ -16,13 +16,22 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 
 ``precision`` "float32" (default) computes the export's function within float rounding;
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
-``openvino_runtime``) that grows with the map: at 32 keyframes DA3-Small's poses deviated about
-twice as much as PyTorch's bf16 (Pi3 ``large``'s did not), and "float32" was nearly as fast
-(``benchmarks/README.md``, "CPU runtimes side by side"). ``info.accelerations`` reports what the plugin chose: device, precision,
+``openvino_runtime``) that grows with the map and depends on the CPU: at 32 keyframes
+DA3-Small's poses deviated about twice as much as PyTorch's bf16 on an AMD EPYC with
+AVX512-BF16 (``benchmarks/results/auto_choice.md``; Pi3 ``large``'s did not), 4.6 times as much
+on a Xeon with AMX (as reported), and "float32" was nearly as fast (README, model choice).
+``kvtracker tune`` measures it on the machine at hand and keeps bf16 only within PyTorch bf16's
+deviation (``backends/autotune.py``). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
 
 openvino is imported when a backend is created (``MissingDependencyError`` names the
 ``[openvino]`` extra without it). PyTorch is still needed for the ``KVCache`` itself.
+
+Waiting threads: OpenVINO's CPU plugin runs on oneTBB, whose idle workers sleep after a short
+spin (no ``OMP_WAIT_POLICY`` applies to them). torch's OpenMP still copies the cache here; with
+its spinning default that nobody chose (torch imported before ``kvtracker_sdk``:
+``threads.spins_by_default``) the backend sets torch to one thread when it is built, so that no
+spinning OpenMP thread takes a core from OpenVINO's, and logs the fix.
 """
 
 from __future__ import annotations
@@ -30,10 +39,23 @@ from __future__ import annotations
 import os
 from collections.abc import Collection
 
+import torch
+
 from kvtracker_sdk.backends.export_backend import ExportBackend, export_folder
 from kvtracker_sdk.backends.openvino_runtime import OpenVinoRunner
+from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.threads import SPINNING_FIX, spins_by_default
 
 __all__ = ["OpenVinoBackend"]
+
+_log = get_logger(__name__)
+
+
+def _quiet_torch_threads() -> None:
+    """One torch thread when torch's OpenMP spins by default (see the module docstring)."""
+    if spins_by_default() and torch.get_num_threads() > 1:
+        _log.warning("torch set to one thread: OpenMP spins", fix=SPINNING_FIX)
+        torch.set_num_threads(1)
 
 
 class OpenVinoBackend(ExportBackend):
@@ -62,6 +84,7 @@ class OpenVinoBackend(ExportBackend):
         static_shapes: bool | Collection[str] | None = None,
     ) -> None:
         super().__init__(folder)
+        _quiet_torch_threads()
         runner = OpenVinoRunner(
             self.folder,
             self.manifest,

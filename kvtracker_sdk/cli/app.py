@@ -29,7 +29,7 @@ from kvtracker_sdk.cli.logging_setup import CliState, configure_logging
 
 __all__ = ["app", "main"]
 
-_COMMAND_MODULES = ("track", "demo", "evaluate", "eval_many", "map_cmd", "export_cmd")
+_COMMAND_MODULES = ("track", "demo", "evaluate", "eval_many", "map_cmd", "export_cmd", "tune")
 _OPTIONAL_COMMAND_MODULES = ("export_onnx",)  # present once the ONNX export issue lands
 _GLOBAL_FLAGS = re.compile(r"-v+|-q+|--verbose|--quiet|--log-json")
 

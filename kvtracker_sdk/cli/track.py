@@ -46,11 +46,14 @@ def track(
         "hub id ([hub] extra to download).")] = DEFAULT_WEIGHTS,
     backend: Annotated[BackendKind, typer.Option(
         help="Inference runtime: torch, onnx ([onnx] extra) or openvino ([openvino] extra; "
-        "exporting a checkpoint for it needs [onnx] too).")] = BackendKind.TORCH,
+        "exporting a checkpoint for it needs [onnx] too); auto: the one `kvtracker tune` chose on "
+        "this machine for these weights, resolution and keyframe budget (else torch).")
+    ] = BackendKind.AUTO,
     device: Annotated[str, typer.Option(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
-    dtype: Annotated[ComputeDtype, typer.Option(
-        help="Compute dtype (torch), precision hint (openvino).")] = ComputeDtype.FLOAT32,
+    dtype: Annotated[ComputeDtype | None, typer.Option(
+        help="Compute dtype (torch), precision hint (openvino). [default: float32, or auto's]")
+    ] = None,
     threads: Annotated[int | None, typer.Option(min=1, max=4096,
         help="CPU threads for inference (torch, onnx, openvino). [default: the runtime's choice]")] = None,
     resolution: Annotated[int | None, typer.Option(
@@ -151,6 +154,7 @@ def track(
         ground_truth=run_input.ground_truth, save_map=save_map,
     )
     check_outputs(options)  # before the weights load and the first frame, not after the run
+    backend, dtype, threads, why = _resolve_auto(backend, weights, device, dtype, threads, config)
     chosen = _open_backend(state, backend, weights, device=device, dtype=dtype, threads=threads)
     try:
         # with --load-map: the saved config is the base unless --config is given; options change it
@@ -161,6 +165,8 @@ def track(
             description = RunDescription(
                 "track", str(input_path), simulated=False,
                 details={"weights": weights, "source": repr(source), "load_map": _str(load_map),
+                         "backend_choice": {"backend": backend.value, "dtype": dtype.value,
+                                            "threads": threads, "reason": why},
                          "camera": None if intrinsics is None else intrinsics.to_dict()},
             )
             frames = read_frames(source, selection, masks=mask_folder, bbox=box,
@@ -214,6 +220,27 @@ def _check_object_inputs(
         raise ConfigError(
             "--bbox is for object mode (--mode object); scene mode tracks the whole frame"
         )
+
+
+def _resolve_auto(
+    kind: BackendKind, weights: str, device: str, dtype: ComputeDtype | None,
+    threads: int | None, config: TrackerConfig,
+) -> tuple[BackendKind, ComputeDtype, int | None, str]:  # fmt: skip
+    """``--backend auto``: the tuned choice (``cli/tune.py``) unless ``--dtype`` or ``--threads``
+    says otherwise or the device is not the CPU (tuning measures CPUs); then torch. Returns the
+    runtime, dtype, threads and why (recorded in run.json)."""
+    if kind is not BackendKind.AUTO:
+        return kind, dtype or ComputeDtype.FLOAT32, threads, "--backend given"
+    if dtype is not None or threads is not None or device != "cpu":
+        why = "--backend auto with --dtype, --threads or a non-CPU --device: torch"
+        return BackendKind.TORCH, dtype or ComputeDtype.FLOAT32, threads, why
+    from kvtracker_sdk.cli.tune import auto_choice
+
+    budget = config.keyframing.budget.max_keyframes or 32
+    chosen, chosen_dtype, chosen_threads, why = auto_choice(
+        weights, resolution=config.resolution, keyframes=budget
+    )
+    return chosen, ComputeDtype(chosen_dtype), chosen_threads, why
 
 
 def _open_backend(state: CliState, kind: BackendKind, weights: str, **options: Any) -> Any:

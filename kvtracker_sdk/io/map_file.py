@@ -4,11 +4,13 @@ Format: safetensors (``map_schema`` lists the tensors, ``map_format`` the header
 ever read or written: a pickle, a zip (``torch.save``) or any other file renamed ``.kvmap`` is just
 bytes that fail the header checks, and is refused without being executed.
 
-Saving streams the file (``safetensors_writer``) into a temporary file beside the target,
-fsyncs it and ``os.replace``-s it over the target (then fsyncs the directory): the path holds the
-old map or the complete new one, never half of one, even if the process dies mid-write; the
-temporary file of a killed save is removed by a later save once stale (``atomic``). Loading validates the whole header before
-touching tensor data, then reads every tensor through the same open descriptor (never a memory
+Saving streams the file (``safetensors_writer``) into a temporary file beside the target while
+other threads hash the same tensors (the header, written first with placeholder digests of the
+same length, is rewritten in place at the end: one pass over the data), fsyncs it and
+``os.replace``-s it over the target (then fsyncs the directory): the path holds the old map
+or the complete new one, never half of one, even if the process dies mid-write; the temporary
+file of a killed save is removed by a later save once stale (``atomic``). Loading validates
+the whole header before touching tensor data, then reads every tensor through the same open descriptor (never a memory
 map, see ``map_reader``) straight into its final buffer — the K/V into the cache's preallocated
 buffers — and verifies every tensor's sha256.
 
@@ -23,6 +25,7 @@ import contextlib
 import os
 import re
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from enum import Enum
@@ -68,6 +71,7 @@ __all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map
 
 _log = get_logger(__name__)
 PathLike = str | os.PathLike[str]
+_PLACEHOLDER_DIGEST = "0" * 64  # a sha256 hex digest's length
 
 
 @dataclass(frozen=True, eq=False)
@@ -223,13 +227,25 @@ def save_map(
         info,
         keyframe_encoding=encoding,
         format_version=max(info.format_version, KEYFRAME_ENCODINGS[encoding]),
-        tensor_sha256=sha256_of(tensors),
+        tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
     )
-    try:
-        with atomic_write(target, binary=True) as handle:
-            size = write_safetensors(handle, tensors, encode_metadata(info))
-    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
-        raise MapIOError(f"cannot write map {target}: {exc}") from exc
+    # one pass over the data: the digests are computed on other threads while it is written,
+    # then the header (written first with placeholders of the same length) is rewritten
+    with ThreadPoolExecutor(max_workers=1) as hashing:
+        digests = hashing.submit(sha256_of, tensors)
+
+        def sealed() -> dict[str, str]:
+            nonlocal info
+            info = replace(info, tensor_sha256=digests.result())
+            return encode_metadata(info)
+
+        try:
+            with atomic_write(target, binary=True) as handle:
+                size = write_safetensors(
+                    handle, tensors, encode_metadata(info), final_metadata=sealed
+                )
+        except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+            raise MapIOError(f"cannot write map {target}: {exc}") from exc
     _remove_safetensors_leftovers(target.parent)
     _log.info("map saved", path=str(target), keyframes=info.num_keyframes, bytes=size)
     return replace(info, file_size=size)

@@ -10,15 +10,24 @@ header (tensor name -> dtype, shape, data offsets, plus ``__metadata__``) padded
 multiple of 8 bytes, then each tensor's bytes, in the order safetensors itself uses (largest
 element size first, then by name, so every tensor starts aligned to its element size).
 Files written here read back with ``safetensors.safe_open`` (tested).
+
+``final_metadata``: metadata known only once the data is written (the map's sha256 digests,
+computed while the data is written instead of in a pass before it). The header is written first
+with the metadata given, and rewritten in place (``pwrite``) with the final one, which must
+encode to the same length (fixed-length digests do): still one pass over the data. The data
+goes out in chunks, each handed to the disk at once (``writeback``), so that the final
+``fsync`` does not wait for all of it.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import IO
 
 import torch
+
+from kvtracker_sdk.io.writeback import start_writeback
 
 __all__ = ["write_safetensors"]
 
@@ -30,17 +39,39 @@ _DTYPE_CODES: dict[torch.dtype, str] = {
 }  # fmt: skip
 
 
+_CHUNK = 32 << 20  # bytes written before the kernel is asked to start writing them out
+
+
+def _descriptor(handle: IO[bytes]) -> int | None:
+    """The handle's file descriptor (None for in-memory handles: no writeback hints)."""
+    try:
+        return handle.fileno()
+    except (AttributeError, OSError, ValueError):  # io.UnsupportedOperation is both
+        return None
+
+
 def _raw_bytes(tensor: torch.Tensor) -> memoryview:
     """The bytes of a contiguous CPU tensor (any dtype, bfloat16 included), without a copy."""
     return tensor.reshape(-1).view(torch.uint8).numpy().data
 
 
+def _header_bytes(header: dict[str, object], metadata: Mapping[str, str]) -> bytes:
+    raw = json.dumps({**header, "__metadata__": dict(metadata)}, separators=(",", ":")).encode()
+    return raw + b" " * (-len(raw) % 8)
+
+
 def write_safetensors(
-    handle: IO[bytes], tensors: Mapping[str, torch.Tensor], metadata: Mapping[str, str]
+    handle: IO[bytes],
+    tensors: Mapping[str, torch.Tensor],
+    metadata: Mapping[str, str],
+    *,
+    final_metadata: Callable[[], Mapping[str, str]] | None = None,
 ) -> int:
-    """Write ``tensors`` (contiguous, CPU) and ``metadata`` to ``handle``; return the bytes written."""
+    """Write ``tensors`` (contiguous, CPU) and ``metadata`` to ``handle`` (a file opened at its
+    start); return the bytes written. ``final_metadata()``, called after the data is written,
+    replaces ``metadata`` in the header (same encoded length, ``ValueError`` otherwise)."""
     order = sorted(tensors, key=lambda name: (-tensors[name].element_size(), name))
-    header: dict[str, object] = {"__metadata__": dict(metadata)}
+    header: dict[str, object] = {"__metadata__": {}}  # safetensors puts it first
     offset = 0
     for name in order:
         tensor = tensors[name]
@@ -53,11 +84,25 @@ def write_safetensors(
             "data_offsets": [offset, offset + size],
         }
         offset += size
-    raw = json.dumps(header, separators=(",", ":")).encode("utf-8")
-    raw += b" " * (-len(raw) % 8)
+    raw = _header_bytes(header, metadata)
     handle.write(len(raw).to_bytes(8, "little"))
     handle.write(raw)
+    written, fd = 8 + len(raw), _descriptor(handle)
     for name in order:
-        if tensors[name].numel():
-            handle.write(_raw_bytes(tensors[name]))
+        data = _raw_bytes(tensors[name])
+        for start in range(0, len(data), _CHUNK):  # the disk starts on each chunk at once
+            chunk = data[start : start + _CHUNK]
+            handle.write(chunk)
+            if fd is not None:
+                handle.flush()
+                start_writeback(fd, written, len(chunk))
+            written += len(chunk)
+    if final_metadata is not None:
+        final = _header_bytes(header, final_metadata())
+        if len(final) != len(raw):
+            raise ValueError(f"the final header has {len(final)} bytes, the first {len(raw)}")
+        end = handle.tell()
+        handle.seek(8)
+        handle.write(final)
+        handle.seek(end)
     return 8 + len(raw) + offset

@@ -48,6 +48,7 @@ DEFAULT_WEIGHTS = "yyfz233/Pi3"  # the official Pi3 checkpoint on the Hugging Fa
 
 
 class BackendKind(str, enum.Enum):
+    AUTO = "auto"  # resolved by cli/tune.py's auto_choice before a backend is opened
     TORCH = "torch"
     ONNX = "onnx"
     OPENVINO = "openvino"
@@ -122,6 +123,9 @@ def open_backend(
         raise ConfigError(f"backend {kind!r} / dtype {dtype!r}: {exc}") from exc
     if threads is not None and threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {threads}")
+    if kind is BackendKind.AUTO:
+        raise ConfigError("backend 'auto' is resolved by `kvtracker tune`'s choice before a "
+                          "backend opens: name torch, onnx or openvino here")
     extra = dict(options or {})
     unknown = sorted(set(extra) - RUNTIME_OPTIONS[kind])
     if unknown:

@@ -165,7 +165,7 @@ def test_a_failing_write_keeps_the_old_map_and_removes_the_temporary(
 ) -> None:
     target, old = save_old(tmp_path)
 
-    def half_write(handle: BinaryIO, tensors: object, metadata: object) -> int:
+    def half_write(handle: BinaryIO, tensors: object, metadata: object, **_: object) -> int:
         handle.write(target.read_bytes()[:1000])
         raise failure
 

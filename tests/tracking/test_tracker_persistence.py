@@ -299,7 +299,7 @@ def test_a_failed_save_keeps_the_previous_map(
     backend = sim_backend()
     path = tmp_path / "scene.kvmap"
 
-    def disk_full(handle: BinaryIO, tensors: object, metadata: object) -> int:
+    def disk_full(handle: BinaryIO, tensors: object, metadata: object, **_: object) -> int:
         handle.write(b"half a map")
         raise OSError(errno.ENOSPC, "No space left on device")
 
