@@ -23,6 +23,7 @@ import typer
 
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 from kvtracker_sdk.cli.logging_setup import CliState
+from kvtracker_sdk.cli.number_options import finite
 from kvtracker_sdk.cli.progress import busy
 from kvtracker_sdk.errors import ConfigError
 from kvtracker_sdk.log import get_logger
@@ -74,13 +75,13 @@ def tune(
         help="The tracker's --resolution d (224, 308, 504, 518). [default: the family's]")] = None,
     frame_size: Annotated[str, typer.Option(
         help="Input frame size WxH (the model size follows as the tracker resizes).")] = "640x480",
-    keyframes: Annotated[int, typer.Option(
+    keyframes: Annotated[int, typer.Option(min=1, max=1024,
         help="Map size tuned for: the tracker's keyframe budget (--max-keyframes).")] = 32,
     runtime: Annotated[list[str] | None, typer.Option(
         help="Runtimes to try (torch, onnx, openvino; repeat the option). [default: installed]")
     ] = None,
-    seconds: Annotated[float, typer.Option(help="Timing budget (the map pass comes on top).")] = 5.0,
-    as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
+    seconds: Annotated[float, typer.Option(min=0.1, max=3600, callback=finite, help="Timing budget (the map pass comes on top).")] = 5.0,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON. [default: off]")] = False,
 ) -> None:
     """Time the runtimes, dtypes and thread counts on these weights here; keep the fastest."""
     from kvtracker_sdk.backends.autotune import RUNTIMES, TuneProblem, default_candidates
