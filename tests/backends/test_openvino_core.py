@@ -21,6 +21,10 @@ from tests.helpers import dev_dependency
 CHILD = textwrap.dedent(
     """
     import ctypes, gc, signal, sys
+    # Python's own SIGINT handler, whatever the parent left (a shell's background job starts
+    # with SIGINT ignored, and Python then installs none): the handler that runs on the
+    # alternate stack is what this test is about
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     from kvtracker_sdk.backends.openvino import OpenVinoBackend
 
     class Stack(ctypes.Structure):
