@@ -36,7 +36,7 @@ from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency, shared_path
 from tests.scale.recordings import write_camera, write_image_folder, write_tum_layout
 
-FRAMES = 6  # per sequence: enough for three mapping passes at a keyframe every 2 frames
+FRAMES = 4  # per sequence: two mapping passes at a keyframe every 2 frames (a rebuild joins)
 CONFIG = {"resolution": 224, "keyframing": {"interval_frames": 2}}
 ENGINES = ("serial", "local", "ray")
 
