@@ -29,10 +29,17 @@ from tests.tracking.sim_session import SIZE, make_tracker
 dev_dependency("viser")
 from kvtracker_sdk.viz.live_viewer import LOOPBACK, Viewer  # noqa: E402
 
+# The browser stands in for the user, but it runs inside the suite, whose every connect() is
+# traced: no name lookups (its own DNS client binds 0.0.0.0 and asks the machine's resolver),
+# no prefetching, no Google services; the page is on 127.0.0.1.
 BROWSER_FLAGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--window-size=1200,800",
+    "--window-size=1200,800", "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+    "--dns-prefetch-disable", "--disable-domain-reliability", "--no-pings",
+    "--disable-client-side-phishing-detection", "--disable-default-apps", "--disable-extensions",
+    "--disable-features=AsyncDns,OptimizationHints,MediaRouter,DialMediaRouteProvider,Translate,"
+    "NetworkTimeServiceQuerying,CertificateTransparencyComponentUpdater",
 )
 PAGE_TIMEOUT_S = 15.0  # generous: the page polls, it never sleeps a fixed time
 GATE_TIMEOUT_S = 30.0
