@@ -3,7 +3,7 @@
 The guarantees of the map reader, for JSON/YAML/text files:
 
 * **regular files only**: a symbolic link is followed to its target, which must be a regular
-  file; a FIFO, a socket, a device or a folder is refused at once (``read_regular_bytes`` opens
+  file; a FIFO, a socket, a device or a folder is refused at once (``read_user_bytes`` opens
   with ``O_NONBLOCK`` and checks the opened descriptor, so nothing blocks and nothing swapped in
   after a check slips through);
 * **a size cap**: the size is checked on the opened descriptor before reading, and at most
