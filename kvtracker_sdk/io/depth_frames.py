@@ -22,7 +22,7 @@ import numpy as np
 
 from kvtracker_sdk.errors import DepthError, SourceError
 from kvtracker_sdk.io.regular_file import read_regular_bytes
-from kvtracker_sdk.io.sources import IMAGE_SUFFIXES
+from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, read_tum_listing
 
 __all__ = ["TUM_DEPTH_SCALE", "DepthFolder"]
 
@@ -81,23 +81,8 @@ class DepthFolder:
 
 
 def _read_listing(listing: Path) -> tuple[list[Path], np.ndarray]:
-    stamps, files = [], []
-    try:
-        lines = listing.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SourceError(f"cannot read {listing} ({exc})") from exc
-    for number, line in enumerate(lines, start=1):
-        fields = line.split()
-        if not fields or fields[0].startswith("#"):
-            continue
-        try:
-            if len(fields) != 2:
-                raise ValueError(f"{len(fields)} fields")
-            stamps.append(float(fields[0]))
-        except ValueError as exc:
-            raise SourceError(f"{listing}:{number}: expected 'timestamp filename' ({exc})") from exc
-        files.append(listing.parent / fields[1])
-    return files, np.array(stamps, dtype=np.float64)
+    files, stamps, _ = read_tum_listing(listing)
+    return files, stamps
 
 
 def _natural_key(path: Path) -> list[int | str]:

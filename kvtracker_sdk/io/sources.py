@@ -49,6 +49,7 @@ __all__ = [
     "VideoSource",
     "open_source",
     "read_rgb",
+    "read_tum_listing",
 ]
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"})
@@ -125,33 +126,41 @@ class ImageFolderSource(_FileListSource):
         super().__init__(folder, files, np.arange(len(files)) / fps)
 
 
+
+def read_tum_listing(listing: Path) -> tuple[list[Path], np.ndarray, list[str]]:
+    """A TUM listing (``rgb.txt``, ``depth.txt``: ``timestamp filename`` per line, ``#``
+    comments): the files (beside the listing), their stamps [N] float64 (seconds), and the
+    comment lines. ``SourceError`` naming the line for anything else."""
+    stamps, files, comments = [], [], []
+    try:
+        lines = listing.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SourceError(f"cannot read {listing} ({exc})") from exc
+    for number, line in enumerate(lines, start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            comments.append(line)
+            continue
+        try:
+            if len(fields) != 2:
+                raise ValueError(f"{len(fields)} fields")
+            stamps.append(float(fields[0]))
+        except ValueError as exc:
+            raise SourceError(f"{listing}:{number}: expected 'timestamp filename' ({exc})") from exc
+        files.append(listing.parent / fields[1])
+    return files, np.array(stamps, dtype=np.float64), comments
+
+
 class TumSource(_FileListSource):
     """A TUM RGB-D sequence folder: the images listed in ``rgb.txt`` with their stamps."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         folder = Path(path)
         listing = folder / "rgb.txt"
-        stamps, files = [], []
-        self._camera_name: str | None = None
-        try:
-            lines = listing.read_text(encoding="utf-8").splitlines()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise SourceError(f"{folder}: cannot read rgb.txt ({exc})") from exc
-        for number, line in enumerate(lines, start=1):
-            fields = line.split()
-            if not fields or fields[0].startswith("#"):
-                self._camera_name = self._camera_name or _tum_camera_name(line)
-                continue
-            try:
-                if len(fields) != 2:
-                    raise ValueError(f"{len(fields)} fields")
-                stamps.append(float(fields[0]))
-            except ValueError as exc:
-                raise SourceError(
-                    f"{listing}:{number}: expected 'timestamp filename' ({exc})"
-                ) from exc
-            files.append(folder / fields[1])
-        super().__init__(folder, files, np.array(stamps))
+        files, stamps, comments = read_tum_listing(listing)
+        self._camera_name: str | None = next(
+            (name for name in map(_tum_camera_name, comments) if name), None)
+        super().__init__(folder, files, stamps)
         self._camera_name = _tum_camera_name(folder.resolve().name) or self._camera_name
 
     def camera(self) -> Camera | None:
