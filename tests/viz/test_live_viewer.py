@@ -25,13 +25,14 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from tests.helpers import dev_dependency
 from tests.tracking.sim_session import SIZE, make_tracker
+from tests.viz.no_ipv6_udp import refuse_ipv6_udp, supported
 
 dev_dependency("viser")
 from kvtracker_sdk.viz.live_viewer import LOOPBACK, Viewer  # noqa: E402
 
 # The browser stands in for the user, but it runs inside the suite, whose every connect() is
 # traced: no name lookups (its own DNS client binds 0.0.0.0 and asks the machine's resolver),
-# no prefetching, no Google services; the page is on 127.0.0.1.
+# no prefetching, no Google services; the page is on 127.0.0.1; no IPv6 probe (see the fixture).
 BROWSER_FLAGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
     "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -43,6 +44,9 @@ BROWSER_FLAGS = (
 )
 PAGE_TIMEOUT_S = 15.0  # generous: the page polls, it never sleeps a fixed time
 GATE_TIMEOUT_S = 30.0
+# The camera loop waits for the test's browser checks, which take longer on a loaded machine; the
+# test always releases it (finally), so this bound only ends a hang.
+WORKER_GATE_TIMEOUT_S = 300.0
 
 
 def _chromium() -> tuple[str, str]:
@@ -68,7 +72,10 @@ def browser(tmp_path: Path) -> Iterator[Any]:
         options.add_argument(flag)
     profile = tempfile.mkdtemp(prefix="chromium-profile-")  # a fresh profile every time
     options.add_argument(f"--user-data-dir={profile}")
-    driver = webdriver.Chrome(options=options, service=Service(driver_path))
+    # chromedriver and the Chromium it starts cannot open IPv6 UDP sockets: their reachability
+    # probe to Google's DNS fails at socket() instead of connecting (no_ipv6_udp says why)
+    service = Service(driver_path, popen_kw={"preexec_fn": refuse_ipv6_udp} if supported() else {})
+    driver = webdriver.Chrome(options=options, service=service)
     try:
         yield driver
     finally:
@@ -95,10 +102,10 @@ def test_page_shows_the_run_while_it_is_in_progress(browser: Any, tmp_path: Path
                 for frame in backend.frames(SIZE, stop=first_part + 10, textured=True):
                     if frame.index == first_part:
                         paused.set()
-                        assert resume.wait(GATE_TIMEOUT_S)
+                        assert resume.wait(WORKER_GATE_TIMEOUT_S)
                     viewer.log_frame(frame.image, tr.push_frame(frame.image, timestamp=frame.timestamp))
                 paused.set()
-                assert finish.wait(GATE_TIMEOUT_S)  # the run is still in progress meanwhile
+                assert finish.wait(WORKER_GATE_TIMEOUT_S)  # the run is still in progress meanwhile
             except BaseException as exc:  # reported by the test thread
                 failures.append(exc)
                 paused.set()
