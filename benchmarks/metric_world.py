@@ -52,7 +52,7 @@ from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.se3 import project_to_rotation
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
-from kvtracker_sdk.tracking.events import WorldFrameChangedEvent
+from kvtracker_sdk.tracking.core.events import WorldFrameChangedEvent
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult
 

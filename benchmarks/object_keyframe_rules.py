@@ -34,7 +34,7 @@ import numpy as np
 
 from kvtracker_sdk.backends.simulated_scene import look_at
 from kvtracker_sdk.config import ObjectKeyframeRule
-from kvtracker_sdk.tracking.keyframes import novel_object_view, view_direction
+from kvtracker_sdk.tracking.mapping.keyframes import novel_object_view, view_direction
 
 RESULTS = Path(__file__).parent / "results"
 STEP_DEG = 0.5

@@ -292,7 +292,7 @@ def _deviation(reference: _Run, run: _Run) -> dict[str, float]:
     """Pose and point deviation of ``run`` from ``reference`` after the tracker's alignment
     (Sim(3) from the shared keyframes, scale from their depths)."""
     from kvtracker_sdk.geometry.se3 import invert_rigid
-    from kvtracker_sdk.tracking.gauge import anchor_gauge, depth_scale, estimate_gauge
+    from kvtracker_sdk.tracking.core.gauge import anchor_gauge, depth_scale, estimate_gauge
 
     ref_gauge = anchor_gauge(reference.kf_poses[0])
     ref_world = ref_gauge.apply_to_pose(reference.kf_poses)

@@ -18,7 +18,7 @@ import numpy as np
 
 from kvtracker_sdk import Backend, Pose, TrackerConfig, TrackingState
 from kvtracker_sdk.runs import TrackingInput, open_tracker
-from kvtracker_sdk.tracking.events import KeyframeEvent, StateChangeEvent
+from kvtracker_sdk.tracking.core.events import KeyframeEvent, StateChangeEvent
 
 HINTS = {
     TrackingState.INIT: "point the camera at the scene",

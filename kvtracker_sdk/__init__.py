@@ -53,7 +53,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.io.camera_files import read_camera_file
     from kvtracker_sdk.io.map_file import read_map_info
-    from kvtracker_sdk.tracking.segmenter import Segmenter
+    from kvtracker_sdk.tracking.object.segmenter import Segmenter
     from kvtracker_sdk.tracking.tracker import Tracker
 
 # public name -> module that defines it (loaded lazily)
@@ -63,7 +63,7 @@ _LAZY: dict[str, str] = {
     "OpenVinoBackend": "kvtracker_sdk.backends.openvino",  # openvino too
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
-    "Segmenter": "kvtracker_sdk.tracking.segmenter",
+    "Segmenter": "kvtracker_sdk.tracking.object.segmenter",
     "Tracker": "kvtracker_sdk.tracking.tracker",
     "read_camera_file": "kvtracker_sdk.io.camera_files",
     "read_map_info": "kvtracker_sdk.io.map_file",

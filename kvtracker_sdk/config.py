@@ -76,7 +76,7 @@ class ObjectPreprocessing(str, enum.Enum):
 
 
 class ObjectKeyframeRule(str, enum.Enum):
-    """When object mode adds a keyframe, judged from the object centre (``tracking/keyframes.py``)."""
+    """When object mode adds a keyframe, judged from the object centre (``tracking/mapping/keyframes.py``)."""
 
     VIEW_DIRECTION = "view_direction"  # the angle between view directions exceeds the threshold
     AZIMUTH_ELEVATION = "azimuth_elevation"  # the paper's: |Δazimuth| or |Δelevation|, each alone

@@ -41,7 +41,7 @@ __all__ = [
 
 
 class TrackingState(str, enum.Enum):
-    """What the app can rely on (see the state table in ``tracking/states.py``)."""
+    """What the app can rely on (see the state table in ``tracking/loop/states.py``)."""
 
     INIT = "INIT"  # no map (new, or after reset())
     MAPPING = "MAPPING"  # the first map is being built; no localisation yet

@@ -1,7 +1,7 @@
 """What the tracker's world frame measures in and which way is up: value types shared by every layer.
 
 A monocular map has an arbitrary scale (the first mapping pass's) and arbitrary axes (keyframe 0's
-camera). Three inputs make it an AR-ready world (``tracking/world_alignment.py`` applies them):
+camera). Three inputs make it an AR-ready world (``tracking/world/world_alignment.py`` applies them):
 
 * depth frames registered to the colour frames (``push_frame(depth=...)``): the map's predicted
   depth is aligned to the sensor's at every keyframe, and the world is in metres;

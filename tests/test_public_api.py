@@ -122,7 +122,7 @@ MOVED_FROM_ROOT = {
     "KVCache": "kvtracker_sdk.cache.kv_cache",
     "Keyframe": "kvtracker_sdk.cache.keyframe_map",
     "KeyframeMap": "kvtracker_sdk.cache.keyframe_map",
-    "LiveStats": "kvtracker_sdk.tracking.live_intake",
+    "LiveStats": "kvtracker_sdk.tracking.live.live_intake",
     "LoadedMap": "kvtracker_sdk.io.map_file",
     "MapInfo": "kvtracker_sdk.io.map_format",
     "MapResult": "kvtracker_sdk.backends.base",

@@ -1,5 +1,5 @@
 """The state diagrams of the states guide and the architecture notes are drawn from the
-transition table (``tracking.state_diagram``): a drawing that drifts from ``tracking/states.py`` fails here."""
+transition table (``tracking.loop.state_diagram``): a drawing that drifts from ``tracking/loop/states.py`` fails here."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import re
 
 import pytest
 
-from kvtracker_sdk.tracking.state_diagram import mermaid_state_diagram
-from kvtracker_sdk.tracking.states import TRANSITIONS
+from kvtracker_sdk.tracking.loop.state_diagram import mermaid_state_diagram
+from kvtracker_sdk.tracking.loop.states import TRANSITIONS
 from tests.helpers import PROJECT_ROOT
 
 FENCE = re.compile(r"```mermaid\n(stateDiagram-v2\n.*?)```", re.DOTALL)
@@ -20,7 +20,7 @@ def test_the_drawn_state_machine_is_the_table(document: str) -> None:
     assert len(blocks) == 1, f"{document}: expected one mermaid state diagram"
     expected = mermaid_state_diagram()
     assert blocks[0] == expected, (
-        f"{document} drifted from tracking/states.py; replace its diagram with:\n{expected}"
+        f"{document} drifted from tracking/loop/states.py; replace its diagram with:\n{expected}"
     )
 
 

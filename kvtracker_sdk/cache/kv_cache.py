@@ -318,7 +318,7 @@ class KVCache:
 
         A tracking pass of one frame leaves its own K/V (T tokens) right after each layer's
         length; adopting them appends that frame as keyframe ``keyframe_id`` without another
-        pass (incremental keyframes, ``tracking/map_insertion.py``). The caller must hold
+        pass (incremental keyframes, ``tracking/mapping/map_insertion.py``). The caller must hold
         ``lock`` from the pass to this call (another pass would overwrite the scratch). Dense
         caches only: a quantised cache's pass writes its scratch into one shared work pair.
         """

@@ -31,7 +31,7 @@ from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
     from kvtracker_sdk.io.map_format import MapInfo
-    from kvtracker_sdk.tracking.events import StateChangeEvent
+    from kvtracker_sdk.tracking.core.events import StateChangeEvent
     from kvtracker_sdk.tracking.tracker import Tracker
     from kvtracker_sdk.viz.rerun_sink import RerunSink
 

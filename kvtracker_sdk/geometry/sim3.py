@@ -1,7 +1,7 @@
 """Similarity transforms and the Umeyama alignment.
 
 Every mapping pass of a multi-view transformer returns poses in its own frame and scale; the SDK
-keeps one world frame by chaining Sim(3) corrections (``tracking/gauge.py``) and evaluates
+keeps one world frame by chaining Sim(3) corrections (``tracking/core/gauge.py``) and evaluates
 trajectories after a Sim(3) or SE(3) alignment (``eval/``).
 
 ``umeyama_alignment`` is written out here (about 20 lines) rather than taken from evo because evo

@@ -34,8 +34,8 @@ from kvtracker_sdk.runs.run_loop import (
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
-    from kvtracker_sdk.tracking.events import StateChangeEvent
-    from kvtracker_sdk.tracking.segmenter import Segmenter
+    from kvtracker_sdk.tracking.core.events import StateChangeEvent
+    from kvtracker_sdk.tracking.object.segmenter import Segmenter
     from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["open_tracker", "track"]

@@ -1,7 +1,11 @@
-"""Layer 5, the SDK's brain: ``Tracker`` (``tracker.py``) over the state table (``states``),
-keyframe policies (``keyframes``), world-frame continuity (``gauge``), confidence (``quality``),
-events (``events``), frame validation (``frame_input``) and rebuilds (``map_keeper``,
-``map_builder``, ``mapper``).
+"""Layer 5, the SDK's brain: ``Tracker`` (``tracker.py``, the facade) over subpackages by concern,
+in the order ``pyproject.toml``'s import contract enforces (each imports only those below it):
+
+* ``live`` and ``persistence``: live intake on a worker thread; the tracker's side of map files;
+* ``loop``: the per-frame loop and the tracking state table;
+* ``mapping`` and ``world``: the keyframe map and its rebuilds; the map's world frame and scale;
+* ``object``: object mode (the object's region per frame, the object model);
+* ``core``: frame validation, intrinsics, confidence, world-frame continuity, events.
 
 ``Tracker`` is loaded on first access, so importing a small module of this package (the state
 table, say) does not import the tracker and its dependencies.

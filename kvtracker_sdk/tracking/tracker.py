@@ -43,22 +43,27 @@ from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess.undistort import Undistorter
-from kvtracker_sdk.tracking import persistence
-from kvtracker_sdk.tracking.depth_input import check_depth, depth_to_model
-from kvtracker_sdk.tracking.events import EventBus, EventSource
-from kvtracker_sdk.tracking.frame_input import (
+from kvtracker_sdk.tracking.core.events import EventBus, EventSource
+from kvtracker_sdk.tracking.core.frame_input import (
     FramePreparer,
     check_time_order,
     family_preprocessing,
     to_rgb,
 )
-from kvtracker_sdk.tracking.frame_loop import FrameLoop
-from kvtracker_sdk.tracking.intrinsics import FrameIntrinsics
-from kvtracker_sdk.tracking.live_intake import ErrorCallback, LiveIntake, LiveStats, ResultCallback
-from kvtracker_sdk.tracking.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
-from kvtracker_sdk.tracking.persistence import ConfigOverride, PathLike
-from kvtracker_sdk.tracking.segmenter import Segmenter
-from kvtracker_sdk.tracking.world_alignment import WorldChange, check_gravity
+from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
+from kvtracker_sdk.tracking.live.live_intake import (
+    ErrorCallback,
+    LiveIntake,
+    LiveStats,
+    ResultCallback,
+)
+from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop
+from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
+from kvtracker_sdk.tracking.object.segmenter import Segmenter
+from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
+from kvtracker_sdk.tracking.persistence.tracker_maps import ConfigOverride, PathLike
+from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
+from kvtracker_sdk.tracking.world.world_alignment import WorldChange, check_gravity
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,
@@ -408,7 +413,7 @@ class Tracker(EventSource):
         depth: np.ndarray | None = None, depth_scale: float | None = None,
         gravity: Any = None,
     ) -> None:
-        """Hand a frame to the live worker and return at once (``tracking/live_intake.py``).
+        """Hand a frame to the live worker and return at once (``tracking/live/live_intake.py``).
 
         The frame as in ``push_frame`` (HxWx3 uint8 RGB; ``color="bgr"`` for OpenCV frames).
 
@@ -475,7 +480,7 @@ class Tracker(EventSource):
         ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object in object mode:
         required with the first frame, optional afterwards (a frame without one is tracked with
         the region predicted from the map, or the ``Segmenter``'s mask; the result's ``region``
-        and ``T_cam_object`` say where the object is, ``tracking/object_region.py``); against a
+        and ``T_cam_object`` say where the object is, ``tracking/object/object_region.py``); against a
         loaded object map, not needed at all (the whole frame is searched until the tracker
         relocalises; reason ``OBJECT_NOT_FOUND`` if it does not within
         ``object.search_frames`` frames). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
@@ -484,11 +489,11 @@ class Tracker(EventSource):
         call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
         later). ``camera`` gives this frame's intrinsics (else the session's); the result's
         ``intrinsics`` are the input image's: given, predicted or estimated
-        (``tracking/intrinsics.py``).
+        (``tracking/core/intrinsics.py``).
 
         ``depth``: a depth image registered to ``image`` (same H, W; float metres, or integer raw
         units with ``depth_scale`` metres per unit; 0 = no depth): keyframes with depth make the
-        world metric (``tracking/world_alignment.py``). ``gravity``: the direction of gravity in
+        world metric (``tracking/world/world_alignment.py``). ``gravity``: the direction of gravity in
         this frame's camera (3 numbers, OpenCV axes, pointing *down*, any length: a level camera
         reads about (0, 9.81, 0); an accelerometer at rest measures the opposite, pass its
         negative); with readings the world's z axis is turned up. Either may be given on some

@@ -39,12 +39,12 @@ from kvtracker_sdk.errors import ConfigError, MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_wxyz_from_rotation
 from kvtracker_sdk.io.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
 from kvtracker_sdk.io.map_export import fused_point_cloud
-from kvtracker_sdk.tracking.object_model import ObjectModel
+from kvtracker_sdk.tracking.object.object_model import ObjectModel
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
     from kvtracker_sdk.cache.keyframe_map import KeyframeMap
-    from kvtracker_sdk.tracking.events import StateChangeEvent, Subscription
+    from kvtracker_sdk.tracking.core.events import StateChangeEvent, Subscription
     from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["LOOPBACK", "Viewer"]

@@ -36,7 +36,7 @@ from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
-    from kvtracker_sdk.tracking.events import StateChangeEvent, Subscription
+    from kvtracker_sdk.tracking.core.events import StateChangeEvent, Subscription
     from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["RerunSink"]

@@ -10,7 +10,7 @@ import numpy as np
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
-from kvtracker_sdk.tracking.events import (
+from kvtracker_sdk.tracking.core.events import (
     KeyframeEvent,
     KeyframeRejectedEvent,
     MapUpdatedEvent,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.tracking.events import (
+from kvtracker_sdk.tracking.core.events import (
     EventBus,
     EventKind,
     KeyframeEvent,

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.tracking.gauge import (
+from kvtracker_sdk.tracking.core.gauge import (
     anchor_gauge,
     depth_scale,
     estimate_gauge,

@@ -1,6 +1,6 @@
 """What asynchronous mapping does with a keyframe candidate that arrives during a rebuild: it waits
 for that rebuild and starts right after the swap, so the keyframes of a trajectory depend on its
-frames, not on the CPU (``tracking/map_keeper.py``). The gated backend makes the test, not the
+frames, not on the CPU (``tracking/mapping/map_keeper.py``). The gated backend makes the test, not the
 machine, decide when each mapping pass finishes."""
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from kvtracker_sdk.backends.simulated_scene import look_at
 from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.config import BudgetConfig, ObjectKeyframeRule
-from kvtracker_sdk.tracking.keyframes import (
+from kvtracker_sdk.tracking.mapping.keyframes import (
     KeyframeBudget,
     angle_difference_deg,
     interval_elapsed,

@@ -7,7 +7,7 @@ import threading
 import pytest
 
 from kvtracker_sdk.errors import StateError
-from kvtracker_sdk.tracking.mapper import Mapper
+from kvtracker_sdk.tracking.mapping.mapper import Mapper
 
 
 def test_inline_job_runs_before_submit_returns_and_is_taken_once() -> None:

@@ -28,9 +28,9 @@ from kvtracker_sdk.geometry.pixel_transform import PixelTransform
 from kvtracker_sdk.io.map_file import read_map_info
 from kvtracker_sdk.io.map_format import metadata_digest
 from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
-from kvtracker_sdk.tracking.depth_input import check_depth, depth_to_model
-from kvtracker_sdk.tracking.metric_scale import fit_depth_scale
-from kvtracker_sdk.tracking.world_alignment import level_rotation
+from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
+from kvtracker_sdk.tracking.world.metric_scale import fit_depth_scale
+from kvtracker_sdk.tracking.world.world_alignment import level_rotation
 from kvtracker_sdk.world import MapWorld, ScaleSource, WorldAlignment
 from tests.helpers import dev_dependency, shared_path
 from tests.tracking.sim_session import SIZE, make_tracker

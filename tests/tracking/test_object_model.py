@@ -15,8 +15,8 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.geometry.boxes import box_iou, mask_box
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.preprocess import box_mask
-from kvtracker_sdk.tracking.object_model import foreground_points, voxel_subsample
-from kvtracker_sdk.tracking.object_region import grown_mask, project_region, region_of_input
+from kvtracker_sdk.tracking.object.object_model import foreground_points, voxel_subsample
+from kvtracker_sdk.tracking.object.object_region import grown_mask, project_region, region_of_input
 from kvtracker_sdk.types import RegionSource
 
 SIZE = (120, 160)

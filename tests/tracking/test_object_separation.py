@@ -17,7 +17,7 @@ from kvtracker_sdk.backends.simulated_scene import SimulatedScene, pixel_rays
 from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.cli.demo_trajectory import desk_orbit
 from kvtracker_sdk.preprocess import box_mask
-from kvtracker_sdk.tracking.object_model import ObjectModel, fuse_object
+from kvtracker_sdk.tracking.object.object_model import ObjectModel, fuse_object
 
 SIZE = (120, 160)
 WALK = desk_orbit(240, seed=3)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kvtracker_sdk.tracking.quality import ConfidenceMonitor, frame_confidence, masked_mean
+from kvtracker_sdk.tracking.core.quality import ConfidenceMonitor, frame_confidence, masked_mean
 
 
 def _monitor(timeout: int | None = 5) -> ConfidenceMonitor:

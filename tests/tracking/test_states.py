@@ -7,7 +7,7 @@ import itertools
 import pytest
 
 from kvtracker_sdk.errors import IllegalTransitionError, StateError
-from kvtracker_sdk.tracking.states import TRANSITIONS, Transition, transition
+from kvtracker_sdk.tracking.loop.states import TRANSITIONS, Transition, transition
 from kvtracker_sdk.types import StateReason, TrackingState
 
 S, R = TrackingState, StateReason

@@ -16,9 +16,9 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import MappingFailedError, TrackingFailedError
-from kvtracker_sdk.tracking import mapper as mapper_module
-from kvtracker_sdk.tracking.events import BackendFailedEvent
-from kvtracker_sdk.tracking.states import TRANSITIONS
+from kvtracker_sdk.tracking.core.events import BackendFailedEvent
+from kvtracker_sdk.tracking.loop.states import TRANSITIONS
+from kvtracker_sdk.tracking.mapping import mapper as mapper_module
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import HeadSet, StateReason, TrackingState
 from tests.tracking.gated_backend import GATE_TIMEOUT_S, GatedBackend

@@ -7,7 +7,11 @@ import pytest
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
-from kvtracker_sdk.tracking.keyframes import angle_difference_deg, object_centre, view_angles_deg
+from kvtracker_sdk.tracking.mapping.keyframes import (
+    angle_difference_deg,
+    object_centre,
+    view_angles_deg,
+)
 from tests.tracking.sim_session import drive, make_tracker
 
 

@@ -15,7 +15,7 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.errors import BackendMismatchError, ConfigError
-from kvtracker_sdk.tracking import persistence
+from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
 from kvtracker_sdk.tracking.tracker import Tracker
 from tests.helpers import shared_path
 

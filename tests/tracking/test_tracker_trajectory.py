@@ -10,7 +10,7 @@ import pytest
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth
-from kvtracker_sdk.tracking.events import WorldFrameChangedEvent
+from kvtracker_sdk.tracking.core.events import WorldFrameChangedEvent
 from kvtracker_sdk.types import StateReason
 from tests.tracking.sim_session import SIZE, drive, make_tracker
 

@@ -8,7 +8,7 @@ in ``StateReason`` order; ``[*] --> INIT`` marks where every tracker starts.
 
 from __future__ import annotations
 
-from kvtracker_sdk.tracking.states import TRANSITIONS
+from kvtracker_sdk.tracking.loop.states import TRANSITIONS
 from kvtracker_sdk.types import StateReason, TrackingState
 
 __all__ = ["mermaid_state_diagram"]

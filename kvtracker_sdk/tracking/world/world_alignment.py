@@ -39,8 +39,8 @@ import numpy as np
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.errors import GravityError, InputError, StateError
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.tracking.map_builder import RebuildOutcome
-from kvtracker_sdk.tracking.object_model import fused_object_points
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
+from kvtracker_sdk.tracking.object.object_model import fused_object_points
 from kvtracker_sdk.world import (
     GravityEstimate,
     MapWorld,

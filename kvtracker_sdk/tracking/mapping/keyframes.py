@@ -25,7 +25,7 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.config import BudgetConfig, EvictionPolicy, ObjectKeyframeRule
-from kvtracker_sdk.tracking.object_model import POINT_STEP, fused_object_points
+from kvtracker_sdk.tracking.object.object_model import POINT_STEP, fused_object_points
 
 __all__ = [
     "KeyframeBudget",

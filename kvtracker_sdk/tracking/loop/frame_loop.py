@@ -26,7 +26,7 @@ from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TimeoutPolicy, TrackerConfig
 from kvtracker_sdk.errors import TrackingFailedError
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.tracking.events import (
+from kvtracker_sdk.tracking.core.events import (
     BackendFailedEvent,
     EventBus,
     EventKind,
@@ -34,14 +34,14 @@ from kvtracker_sdk.tracking.events import (
     StateChangeEvent,
     WorldFrameChangedEvent,
 )
-from kvtracker_sdk.tracking.failures import MappingFailure, track_checked
-from kvtracker_sdk.tracking.frame_input import PreparedFrame
-from kvtracker_sdk.tracking.map_builder import RebuildOutcome
-from kvtracker_sdk.tracking.map_keeper import MapKeeper
-from kvtracker_sdk.tracking.quality import ConfidenceMonitor, frame_confidence
-from kvtracker_sdk.tracking.reporting import WorldFrameChange, failure_event, rebuild_events
-from kvtracker_sdk.tracking.states import transition
-from kvtracker_sdk.tracking.world_alignment import WorldAligner, WorldChange
+from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
+from kvtracker_sdk.tracking.core.quality import ConfidenceMonitor, frame_confidence
+from kvtracker_sdk.tracking.loop.reporting import WorldFrameChange, failure_event, rebuild_events
+from kvtracker_sdk.tracking.loop.states import transition
+from kvtracker_sdk.tracking.mapping.failures import MappingFailure, track_checked
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
+from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper
+from kvtracker_sdk.tracking.world.world_alignment import WorldAligner, WorldChange
 from kvtracker_sdk.types import Pose, StateReason, TrackedPose, TrackerSnapshot, TrackingState
 from kvtracker_sdk.world import WorldAlignment
 

@@ -26,9 +26,9 @@ from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.config import MapCompactionConfig, RejectionConfig
 from kvtracker_sdk.errors import BackendError
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking.gauge import keyframe_corrections
-from kvtracker_sdk.tracking.map_builder import RebuildOutcome, RebuildRequest, build_map
-from kvtracker_sdk.tracking.quality import masked_mean
+from kvtracker_sdk.tracking.core.gauge import keyframe_corrections
+from kvtracker_sdk.tracking.core.quality import masked_mean
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome, RebuildRequest, build_map
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["insert_keyframe", "rebuild_or_insert"]

@@ -48,7 +48,7 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.geometry.boxes import OrientedBox
-from kvtracker_sdk.tracking.object_separation import (
+from kvtracker_sdk.tracking.object.object_separation import (
     Plane3,
     SupportPlanes,
     drop_behind,

@@ -8,7 +8,7 @@ finishes on the worker thread, but its events are delivered by the next ``push_f
 ``wait_for_map``) on the caller's thread: callbacks never run on the mapping worker and never run
 concurrently with each other for one tracker, provided the app calls it from one thread.
 
-An exception raised by a callback is logged (with traceback) under ``kvtracker_sdk.tracking.events``
+An exception raised by a callback is logged (with traceback) under ``kvtracker_sdk.tracking.core.events``
 and swallowed: a broken UI callback must not stop the camera loop. Every event is also logged when
 it happens, as a structured INFO line (``state_change``, ``keyframe``, ``keyframe_rejected``,
 ``map_updated``, ``world_frame_changed``, ``backend_failed``) carrying the payload's scalar fields.
@@ -30,7 +30,7 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.errors import BackendError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking.gauge import Correction
+from kvtracker_sdk.tracking.core.gauge import Correction
 from kvtracker_sdk.types import StateReason, TrackingState
 from kvtracker_sdk.world import WorldAlignment
 

@@ -18,7 +18,7 @@ import numpy as np
 from kvtracker_sdk.backends.base import Backend, TrackResult
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import MappingFailedError, TrackingFailedError
-from kvtracker_sdk.tracking.map_builder import RebuildRequest
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildRequest
 from kvtracker_sdk.types import HeadSet
 
 __all__ = [

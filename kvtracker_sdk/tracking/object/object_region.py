@@ -9,7 +9,7 @@ network or estimated from its points):
   two previous frames' tracked poses. Its mask, grown by 15 % of its box (``grown_mask``), is
   what the frame is tracked with — object mode blacks the background outside it, or crops to its
   box grown by ``crop_margin_px`` — unless the app's ``Segmenter`` answers the prompt with a mask
-  of its own (``tracking/segmenter.py``).
+  of its own (``tracking/object/segmenter.py``).
 * **result** (``FrameResult.region``): the projection at the frame's own tracked pose
   (``PREDICTED``), the app's mask or box (``GIVEN``), or the segmenter's mask (``SEGMENTED``).
   Without a trusted pose (loss, relocalisation, no map yet) or when the object is out of view or
@@ -37,9 +37,9 @@ from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.geometry.boxes import ImageBox, grow_box, mask_box
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.preprocess import box_mask
-from kvtracker_sdk.tracking.frame_input import check_bbox, check_image, check_mask
-from kvtracker_sdk.tracking.object_model import ObjectModelCache
-from kvtracker_sdk.tracking.segmenter import Segmenter, ask_segmenter
+from kvtracker_sdk.tracking.core.frame_input import check_bbox, check_image, check_mask
+from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
+from kvtracker_sdk.tracking.object.segmenter import Segmenter, ask_segmenter
 from kvtracker_sdk.types import ObjectFrame, ObjectRegion, RegionSource
 
 __all__ = [

@@ -22,15 +22,15 @@ from kvtracker_sdk.cache.pruning import object_token_mask, prune_cache
 from kvtracker_sdk.config import MapCompactionConfig, RejectionConfig
 from kvtracker_sdk.errors import BackendError, MapPreprocessingError
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.tracking.gauge import (
+from kvtracker_sdk.tracking.core.gauge import (
     Correction,
     anchor_gauge,
     depth_scale,
     estimate_gauge,
     keyframe_corrections,
 )
-from kvtracker_sdk.tracking.metric_scale import DepthScaleFit, fit_depth_scale
-from kvtracker_sdk.tracking.quality import masked_mean
+from kvtracker_sdk.tracking.core.quality import masked_mean
+from kvtracker_sdk.tracking.world.metric_scale import DepthScaleFit, fit_depth_scale
 from kvtracker_sdk.world import MapWorld, ScaleSource
 
 __all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map", "compact_cache"]

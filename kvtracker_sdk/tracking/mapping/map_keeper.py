@@ -42,15 +42,19 @@ from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMod
 from kvtracker_sdk.errors import MappingFailedError, MapPreprocessingError, StateError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking import keyframes as policy
-from kvtracker_sdk.tracking.failures import MappingFailure, backoff_frames, mapping_error
-from kvtracker_sdk.tracking.frame_input import PreparedFrame
-from kvtracker_sdk.tracking.gauge import keyframe_corrections
-from kvtracker_sdk.tracking.map_builder import KeyframeCandidate, RebuildOutcome, RebuildRequest
-from kvtracker_sdk.tracking.map_insertion import rebuild_or_insert
-from kvtracker_sdk.tracking.mapper import Mapper
-from kvtracker_sdk.tracking.object_model import ObjectModelCache
-from kvtracker_sdk.tracking.world_alignment import WorldChange, transform_map
+from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
+from kvtracker_sdk.tracking.core.gauge import keyframe_corrections
+from kvtracker_sdk.tracking.mapping import keyframes as policy
+from kvtracker_sdk.tracking.mapping.failures import MappingFailure, backoff_frames, mapping_error
+from kvtracker_sdk.tracking.mapping.map_builder import (
+    KeyframeCandidate,
+    RebuildOutcome,
+    RebuildRequest,
+)
+from kvtracker_sdk.tracking.mapping.map_insertion import rebuild_or_insert
+from kvtracker_sdk.tracking.mapping.mapper import Mapper
+from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
+from kvtracker_sdk.tracking.world.world_alignment import WorldChange, transform_map
 from kvtracker_sdk.types import MapStatus
 from kvtracker_sdk.world import ScaleSource
 

@@ -4,7 +4,7 @@ rebuild, and of a new world frame. Pure: it builds payloads; the ``Tracker`` pos
 
 from __future__ import annotations
 
-from kvtracker_sdk.tracking.events import (
+from kvtracker_sdk.tracking.core.events import (
     BackendFailedEvent,
     Event,
     EventKind,
@@ -13,8 +13,8 @@ from kvtracker_sdk.tracking.events import (
     MapUpdatedEvent,
     WorldFrameChangedEvent,
 )
-from kvtracker_sdk.tracking.failures import MappingFailure
-from kvtracker_sdk.tracking.map_builder import RebuildOutcome
+from kvtracker_sdk.tracking.mapping.failures import MappingFailure
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
 from kvtracker_sdk.types import StateReason
 
 __all__ = ["WorldFrameChange", "failure_event", "rebuild_events"]
