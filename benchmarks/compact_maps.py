@@ -7,7 +7,7 @@ keyframes N, one random bf16 cache is made and every **variant** is derived from
 - ``dense``: today's cache (bf16 K/V, the bf16 backend's);
 - ``int8`` / ``fp8``: quantised at rest (``kvtracker_sdk/cache/quantization.py``), dequantised one
   layer at a time into a bf16 work pair while tracking; their map files store the keyframe
-  payload compactly (``io/keyframe_codec.py``: mask bits, uint16 confidences, float16 points —
+  payload compactly (``io/map_file/keyframe_codec.py``: mask bits, uint16 confidences, float16 points —
   DA3's as depth x rays);
 - ``int8-full``: int8 K/V with the keyframe payload in full (format version 2, as before
   version 3), to show what the compact payload adds.
@@ -66,8 +66,8 @@ from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache import CacheLayout, KeyframeMap, KVCache
 from kvtracker_sdk.eval.cache_deviation import CacheVariant, cache_deviation, tum_frames
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import read_map_info, save_map
-from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.io.map_file.map_file import read_map_info, save_map
+from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.models.da3 import DA3Config, DepthAnything3
 from kvtracker_sdk.models.pi3 import Pi3
 from kvtracker_sdk.models.registry import family_of

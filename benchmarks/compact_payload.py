@@ -13,9 +13,9 @@ import torch
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.cache import Keyframe
 from kvtracker_sdk.eval.cache_deviation import tum_frames
-from kvtracker_sdk.io.keyframe_codec import decode_compact, encode_compact
-from kvtracker_sdk.io.map_file import MapInfo
-from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.io.map_file.keyframe_codec import decode_compact, encode_compact
+from kvtracker_sdk.io.map_file.map_file import MapInfo
+from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.models.da3.conventions import unproject_depth
 
 __all__ = ["PARTS", "composition", "keyframe_payload", "payload_deviation"]

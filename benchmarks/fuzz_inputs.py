@@ -37,9 +37,9 @@ sys.path.insert(0, str(ROOT))
 
 from kvtracker_sdk.backends.simulated_scene import GroundTruth  # noqa: E402
 from kvtracker_sdk.errors import KVTrackerError  # noqa: E402
-from kvtracker_sdk.io.camera_files import read_camera_file  # noqa: E402
-from kvtracker_sdk.io.map_file import load_map  # noqa: E402
-from kvtracker_sdk.io.trajectory import read_trajectory  # noqa: E402
+from kvtracker_sdk.io.files.trajectory import read_trajectory  # noqa: E402
+from kvtracker_sdk.io.map_file.map_file import load_map  # noqa: E402
+from kvtracker_sdk.io.sources.camera_files import read_camera_file  # noqa: E402
 from kvtracker_sdk.scale.manifest import SequenceSpec, load_manifest  # noqa: E402
 from kvtracker_sdk.scale.sequence_run import run_sequence  # noqa: E402
 from tests.backends.export_edits import edited_folder, edited_manifests  # noqa: E402

@@ -48,7 +48,7 @@ import torch
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache import CacheLayout, Keyframe, KeyframeMap, KVCache
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map, save_map
+from kvtracker_sdk.io.map_file.map_file import load_map, save_map
 
 RESULTS = Path(__file__).parent / "results"
 SIZE, PATCH, EXTRA = 224, 14, 5

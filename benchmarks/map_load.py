@@ -35,10 +35,10 @@ from safetensors import safe_open
 from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache import CacheLayout, Keyframe, KeyframeMap, KVCache
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
-from kvtracker_sdk.io.map_format import MapInfo, parse_header
-from kvtracker_sdk.io.map_reader import open_map_file, read_map_tensors
-from kvtracker_sdk.io.map_tensors import map_from_tensors, verify_checksums
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_format import MapInfo, parse_header
+from kvtracker_sdk.io.map_file.map_reader import open_map_file, read_map_tensors
+from kvtracker_sdk.io.map_file.map_tensors import map_from_tensors, verify_checksums
 
 KEYFRAMES, SIZE, PATCH, EXTRA = 20, 308, 14, 5
 LAYOUT = CacheLayout(block_indices=tuple(range(1, 36, 2)), num_heads=16, head_dim=64)
@@ -105,7 +105,7 @@ def drop_page_cache(path: Path) -> bool:
 _MEMORY_PROBE = """
 import sys
 from pathlib import Path
-from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.io.map_file.map_file import load_map
 def anon():
     line = next(l for l in Path("/proc/self/status").read_text().splitlines() if l.startswith("RssAnon:"))
     return int(line.split()[1]) * 1024

@@ -179,8 +179,8 @@ def ros_map_up_errors_deg(run: Drive, kf_map: KeyframeMap | None, folder: Path) 
     from rosbags.highlevel import AnyReader
 
     from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
-    from kvtracker_sdk.io.ros2_bag import write_ros2_bag
-    from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL
+    from kvtracker_sdk.io.exports.ros2_bag import write_ros2_bag
+    from kvtracker_sdk.io.exports.ros_frames import DEFAULT_T_BASE_OPTICAL
 
     path = folder / "run_bag"
     write_ros2_bag(path, run.results, kf_map, image_size=(SIZE[1], SIZE[0]))

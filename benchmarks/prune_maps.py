@@ -49,7 +49,7 @@ import torch
 
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.cache.pruning import PRUNE_SCORES, prune_cache
-from kvtracker_sdk.io.map_schema import tensor_schema
+from kvtracker_sdk.io.map_file.map_schema import tensor_schema
 from kvtracker_sdk.models.registry import family_of
 from kvtracker_sdk.types import HeadSet
 

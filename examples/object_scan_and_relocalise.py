@@ -102,7 +102,7 @@ def simulated(start: int, stop: int) -> tuple[Backend, Iterator[View]]:
 
 def real(weights: str, source: str, bbox: str, start: int, stop: int) -> tuple[Backend, Iterator[View]]:
     """The PyTorch backend and frames ``start:stop`` of a video or a sequence, one box for all."""
-    from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.io.sources.sources import open_source
     from kvtracker_sdk.runs import open_backend
 
     box = tuple(float(v) for v in bbox.split(","))

@@ -3,7 +3,7 @@
 The names an app uses are here (``from kvtracker_sdk import Tracker, TrackerConfig, ...``);
 everything else is imported from its module: every error from ``kvtracker_sdk.errors``, value
 types from ``kvtracker_sdk.types``, maps from ``kvtracker_sdk.io.map_file``, exports from
-``kvtracker_sdk.io``, many sequences from ``kvtracker_sdk.scale`` (the API reference lists them).
+``kvtracker_sdk.io.exports``, many sequences from ``kvtracker_sdk.scale`` (the API reference lists them).
 
 ``import kvtracker_sdk`` is cheap: errors, value types and configuration load eagerly; everything
 that pulls in torch, onnxruntime or OpenCV loads on first attribute access (PEP 562).
@@ -51,8 +51,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.openvino import OpenVinoBackend
     from kvtracker_sdk.backends.simulated import SimulatedBackend
     from kvtracker_sdk.backends.torch_backend import TorchBackend
-    from kvtracker_sdk.io.camera_files import read_camera_file
-    from kvtracker_sdk.io.map_file import read_map_info
+    from kvtracker_sdk.io.map_file.map_file import read_map_info
+    from kvtracker_sdk.io.sources.camera_files import read_camera_file
     from kvtracker_sdk.tracking.object.segmenter import Segmenter
     from kvtracker_sdk.tracking.tracker import Tracker
 
@@ -65,8 +65,8 @@ _LAZY: dict[str, str] = {
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Segmenter": "kvtracker_sdk.tracking.object.segmenter",
     "Tracker": "kvtracker_sdk.tracking.tracker",
-    "read_camera_file": "kvtracker_sdk.io.camera_files",
-    "read_map_info": "kvtracker_sdk.io.map_file",
+    "read_camera_file": "kvtracker_sdk.io.sources.camera_files",
+    "read_map_info": "kvtracker_sdk.io.map_file.map_file",
 }
 
 __all__ = [

@@ -1,7 +1,7 @@
 """``read_exactly``: fill a buffer from a file offset with ``pread``, through one descriptor.
 
 Shared by the readers that must never memory-map what they read (checkpoints:
-``models/weights_file.py``; maps: ``io/map_reader.py``), because a memory-mapped page of a file
+``models/weights_file.py``; maps: ``io/map_file/map_reader.py``), because a memory-mapped page of a file
 truncated underneath raises SIGBUS. Each caller turns a short read into its own typed error.
 """
 

@@ -28,8 +28,8 @@ from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.cli.failures import ExitCode
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
+from kvtracker_sdk.io.map_file.map_file import load_map
 from kvtracker_sdk.models.da3.config import DA3Config
 from kvtracker_sdk.models.pi3.config import Pi3Config
 from kvtracker_sdk.models.registry import load_model

@@ -59,7 +59,7 @@ def test_checked_number_names_the_field_and_refuses_non_numbers() -> None:
 
 def test_the_older_regular_file_reader_refuses_a_folder_with_a_typed_error(tmp_path: Path) -> None:
     """``io/regular_file`` (``--config``, list files) used to raise a raw IsADirectoryError."""
-    from kvtracker_sdk.io.regular_file import read_regular_text
+    from kvtracker_sdk.io.files.regular_file import read_regular_text
 
     with pytest.raises(ConfigError, match="folder"):
         read_regular_text(tmp_path, ConfigError)

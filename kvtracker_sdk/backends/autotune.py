@@ -26,7 +26,7 @@ How (the same definitions as ``benchmarks/runtimes.py``):
    precision the project's defaults accept); fp32 candidates are within it by construction.
 
 ``open_candidate`` builds a backend for a candidate (the layer above knows how: exports for
-ONNX / OpenVINO). Caching the choice per machine and model is ``io/tune_cache.py``'s.
+ONNX / OpenVINO). Caching the choice per machine and model is ``io/files/tune_cache.py``'s.
 """
 
 from __future__ import annotations

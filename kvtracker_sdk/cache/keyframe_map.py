@@ -1,6 +1,6 @@
 """``KeyframeMap``: the map as plain data — keyframes, their KV cache, and the gauge.
 
-This is exactly what a map file stores (``io/map_file.py`` reads and writes it without knowing the
+This is exactly what a map file stores (``io/map_file/map_file.py`` reads and writes it without knowing the
 tracker). The tracker owns one and replaces it as a whole on every accepted rebuild, so the
 previous map stays intact for a revert and for readers on other threads.
 

@@ -108,7 +108,7 @@ def demo(
     from kvtracker_sdk.backends.simulated_scene import GroundTruth, SimulatedScene
     from kvtracker_sdk.cli.demo_trajectory import default_loss_segment, desk_orbit, handheld_orbit
     from kvtracker_sdk.config import TrackerConfig
-    from kvtracker_sdk.io.trajectory import Trajectory
+    from kvtracker_sdk.io.files.trajectory import Trajectory
     from kvtracker_sdk.runs.session import open_tracker
 
     state: CliState = ctx.find_root().obj

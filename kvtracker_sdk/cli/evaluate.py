@@ -72,8 +72,8 @@ def evaluate(
     """Score EST against GT: ATE and RPE after alignment, cm-degree recall, a plot."""
     from kvtracker_sdk.eval.plots import plot_trajectory
     from kvtracker_sdk.eval.report import evaluate_trajectories
-    from kvtracker_sdk.io.atomic import atomic_write
-    from kvtracker_sdk.io.trajectory import read_trajectory
+    from kvtracker_sdk.io.files.atomic import atomic_write
+    from kvtracker_sdk.io.files.trajectory import read_trajectory
 
     state: CliState = ctx.find_root().obj
     thresholds = _thresholds(cm_deg)

@@ -6,7 +6,7 @@ reconstruction tools (COLMAP text model; nerfstudio ``transforms.json`` + ``poin
     kvtracker export colmap run/ colmap/ --all-frames    # + every tracked frame of the input
     kvtracker export nerfstudio room.kvmap ns/           # a map file works too
 
-Camera (``io/export_camera.py``): ``--camera FILE`` or ``--intrinsics fx,fy,cx,cy,W,H`` (a
+Camera (``io/exports/export_camera.py``): ``--camera FILE`` or ``--intrinsics fx,fy,cx,cy,W,H`` (a
 calibration, pixels, at any image size: undistorted and rescaled to the map's); by default the
 camera stored in the map (``kvtracker track --camera``, a dataset's published intrinsics, or the
 network's predicted camera); only without any, one focal length fitted to the keyframes' points
@@ -61,10 +61,10 @@ def export(
         help="Keep every N-th keyframe pixel in each direction as a point.")] = 2,
 ) -> None:
     """Export a run's (or a map's) cameras, images and points for COLMAP or nerfstudio."""
-    from kvtracker_sdk.io.camera_files import read_camera_file
-    from kvtracker_sdk.io.colmap_text import write_colmap_text
-    from kvtracker_sdk.io.nerfstudio import write_nerfstudio
-    from kvtracker_sdk.io.run_reconstruction import find_map, load_reconstruction
+    from kvtracker_sdk.io.exports.colmap_text import write_colmap_text
+    from kvtracker_sdk.io.exports.nerfstudio import write_nerfstudio
+    from kvtracker_sdk.io.exports.run_reconstruction import find_map, load_reconstruction
+    from kvtracker_sdk.io.sources.camera_files import read_camera_file
 
     state: CliState = ctx.find_root().obj
     if intrinsics is not None and camera is not None:

@@ -97,7 +97,7 @@ def _open_viewer(live: LiveOutputs, options: LiveOptions, tracker: Tracker, stat
 def _open_bag(live: LiveOutputs, path: Path, tracker: Tracker, state: CliState,
               subscriptions: list[Any]) -> None:
     try:
-        from kvtracker_sdk.io.ros2_bag import Ros2BagWriter
+        from kvtracker_sdk.io.exports.ros2_bag import Ros2BagWriter
 
         live.bag = Ros2BagWriter(path)
     except MissingDependencyError as exc:

@@ -17,7 +17,7 @@ import typer
 from kvtracker_sdk.cli.failures import EXIT_CODES_EPILOG, reports_errors
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.io.map_format import MapInfo
+    from kvtracker_sdk.io.map_file.map_format import MapInfo
 
 __all__ = ["map_app", "map_info", "register"]
 
@@ -96,7 +96,7 @@ def map_info(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object. [default: off]")] = False,
 ) -> None:
     """Show what a map file holds (header only; the tensors are not read)."""
-    from kvtracker_sdk.io.map_file import read_map_info
+    from kvtracker_sdk.io.map_file.map_file import read_map_info
 
     del ctx  # read by reports_errors (-v shows tracebacks)
     facts = describe_map(read_map_info(path), path)

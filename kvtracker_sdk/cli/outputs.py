@@ -33,9 +33,9 @@ import numpy as np
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cli.object_outputs import object_document
 from kvtracker_sdk.errors import EvaluationError, MissingDependencyError
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.ply import write_ply
-from kvtracker_sdk.io.trajectory import Trajectory, write_tum
+from kvtracker_sdk.io.exports.ply import write_ply
+from kvtracker_sdk.io.files.atomic import atomic_write
+from kvtracker_sdk.io.files.trajectory import Trajectory, write_tum
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.runs.run_loop import RunRecord
 
@@ -200,7 +200,9 @@ def _write_points(
     if keyframe_map is None:  # no map was built: an empty cloud keeps the folder's layout fixed
         write_ply(path, np.zeros((0, 3)), comment="kvtracker: no map was built")
         return 0
-    from kvtracker_sdk.io.map_export import export_point_cloud  # loads torch (the map's cache)
+    from kvtracker_sdk.io.exports.map_export import (
+        export_point_cloud,  # loads torch (the map's cache)
+    )
 
     voxel = auto_voxel_size(keyframe_map) if voxel_size is None else (voxel_size or None)
     return export_point_cloud(keyframe_map, path, min_confidence=min_confidence, voxel_size=voxel)

@@ -23,14 +23,14 @@ from kvtracker_sdk.cli.outputs import RunDescription, RunOutputs, write_outputs
 from kvtracker_sdk.cli.progress import FrameProgress, busy
 from kvtracker_sdk.cli.summary import format_summary
 from kvtracker_sdk.errors import KVTrackerError, MapError, MapIOError, OutputError
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.runs.run_loop import BadFramePolicy, InputFrame, RunRecord
 from kvtracker_sdk.runs.session import track
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.io.map_format import MapInfo
+    from kvtracker_sdk.io.map_file.map_format import MapInfo
     from kvtracker_sdk.tracking.core.events import StateChangeEvent
     from kvtracker_sdk.tracking.tracker import Tracker
     from kvtracker_sdk.viz.rerun_sink import RerunSink

@@ -17,7 +17,7 @@ from kvtracker_sdk.cli.progress import busy
 from kvtracker_sdk.cli.session import OutputOptions, check_outputs, run_session
 from kvtracker_sdk.config import TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import ConfigError, MaskError
-from kvtracker_sdk.io.depth_frames import DepthFolder
+from kvtracker_sdk.io.sources.depth_frames import DepthFolder
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.runs.backends import DEFAULT_WEIGHTS, BackendKind, ComputeDtype, open_backend
 from kvtracker_sdk.runs.frames import FrameSelection, MaskFolder, parse_bbox, read_frames
@@ -124,7 +124,7 @@ def track(
         "with depth.txt; needed otherwise for integer images]")] = None,
 ) -> None:
     """Track a camera (or an object) through INPUT and write the trajectory and the map."""
-    from kvtracker_sdk.io.live_sources import is_live_spec
+    from kvtracker_sdk.io.sources.live_sources import is_live_spec
     from kvtracker_sdk.runs.inputs import open_input
     from kvtracker_sdk.runs.session import open_tracker
 
@@ -188,7 +188,7 @@ def _effective_mode(
     ``--mode``, the saved map's (read from its header only)."""
     if load_map is None or base is not None or "mode" in changes:
         return config.mode
-    from kvtracker_sdk.io.map_file import read_map_info
+    from kvtracker_sdk.io.map_file.map_file import read_map_info
 
     try:
         return TrackingMode(read_map_info(load_map).mode)
@@ -262,7 +262,7 @@ def _config_file(path: Path | None) -> TrackerConfig | None:
     """The ``--config`` JSON file as a validated config (None without the option)."""
     if path is None:
         return None
-    from kvtracker_sdk.io.regular_file import read_regular_text
+    from kvtracker_sdk.io.files.regular_file import read_regular_text
 
     text = read_regular_text(path, ConfigError, what="--config")  # a FIFO would block forever
     try:

@@ -6,7 +6,7 @@
 
 The candidates (``backends/autotune.py``) are timed on the weights, at the resolution and map
 size given, for a few seconds; the fastest whose pose deviation from fp32 stays within the torch
-bf16 deviation is kept per machine and model (``io/tune_cache.py``). ``kvtracker track``'s
+bf16 deviation is kept per machine and model (``io/files/tune_cache.py``). ``kvtracker track``'s
 default ``--backend auto`` then uses that choice (``auto_choice``) unless ``--dtype`` or
 ``--threads`` is given; without a kept choice it runs PyTorch as before and says how to tune.
 OpenVINO / ONNX candidates serve an export of the weights (made once: minutes for a full model).
@@ -86,7 +86,7 @@ def tune(
     """Time the runtimes, dtypes and thread counts on these weights here; keep the fastest."""
     from kvtracker_sdk.backends.autotune import RUNTIMES, TuneProblem, default_candidates
     from kvtracker_sdk.backends.autotune import tune as run_tuner
-    from kvtracker_sdk.io.tune_cache import choice_key, remember_choice
+    from kvtracker_sdk.io.files.tune_cache import choice_key, remember_choice
     from kvtracker_sdk.threads import usable_cores
 
     state: CliState = ctx.find_root().obj
@@ -119,7 +119,7 @@ def auto_choice(
     """``--backend auto``: (runtime, dtype, threads, why) from the kept choice for these weights
     and this problem on this machine, else PyTorch float32 with automatic threads."""
     from kvtracker_sdk.backends.autotune import TuneProblem
-    from kvtracker_sdk.io.tune_cache import cached_choice, choice_key
+    from kvtracker_sdk.io.files.tune_cache import cached_choice, choice_key
 
     problem: TuneProblem = TuneProblem(keyframes, resolution)
     kept = cached_choice(choice_key(weights, problem))

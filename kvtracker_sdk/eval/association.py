@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import ConfigError, EvaluationError
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 
 __all__ = ["Association", "associate", "associate_trajectories"]
 

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import MissingDependencyError, TrajectoryError
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.atomic import atomic_write
+from kvtracker_sdk.io.files.trajectory import Trajectory
 
 __all__ = ["GAP_FACTOR", "break_at_gaps", "plot_trajectory"]
 

@@ -3,7 +3,7 @@
 This is what ``kvtracker eval EST GT`` runs; an app or a benchmark script can call it directly:
 
     from kvtracker_sdk.eval.report import evaluate_trajectories
-    from kvtracker_sdk.io.trajectory import read_trajectory
+    from kvtracker_sdk.io.files.trajectory import read_trajectory
 
     report = evaluate_trajectories(read_trajectory("est.txt"), read_trajectory("gt.txt"))
     print(report.summary())
@@ -26,7 +26,7 @@ from kvtracker_sdk.eval.metrics import (
     cm_degree_recall,
     relative_pose_error,
 )
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 
 __all__ = ["EvaluationReport", "evaluate_trajectories"]
 

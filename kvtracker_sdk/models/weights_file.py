@@ -3,7 +3,7 @@
 Why not ``safetensors.torch.load_file`` / ``safe_open``: they memory-map the file. A page of a
 mapping whose file is truncated underneath (a download or a copy still being written, a file
 replaced in place) raises SIGBUS, which kills the app outright instead of giving an error; and
-opening a path that is a FIFO blocks forever. The map reader (``io/map_reader.py``) avoids both
+opening a path that is a FIFO blocks forever. The map reader (``io/map_file/map_reader.py``) avoids both
 the same way; this is the checkpoint's side, one layer down, for the models:
 
 1. ``os.open`` with ``O_NONBLOCK`` (a FIFO opens at once), ``fstat`` of that descriptor: anything

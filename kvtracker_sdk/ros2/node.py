@@ -4,7 +4,7 @@ In:  ``image`` (``sensor_msgs/Image``, rgb8 / bgr8 / mono8) and ``camera_info``
      (``sensor_msgs/CameraInfo``; kept for apps and for the intrinsics seam, not needed to track).
 Out: ``/tf`` (``map -> odom -> base_link``), ``/tf_static`` (``base_link ->
      camera_optical_frame``), ``odom`` (``nav_msgs/Odometry``) and ``/diagnostics`` (state and
-     reason) — the frames and the pose-jump rule of ``io/ros_frames.py``, as in the bags.
+     reason) — the frames and the pose-jump rule of ``io/exports/ros_frames.py``, as in the bags.
 Services (``std_srvs/Trigger``): ``~/save_map`` and ``~/load_map`` (the ``map_path``
      parameter), ``~/reset``.
 
@@ -24,7 +24,12 @@ import numpy as np
 
 from kvtracker_sdk.errors import InputError, KVTrackerError, MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_xyzw_from_rotation
-from kvtracker_sdk.io.ros_frames import FrameNames, OdometrySplit, checked_extrinsic, map_from_world
+from kvtracker_sdk.io.exports.ros_frames import (
+    FrameNames,
+    OdometrySplit,
+    checked_extrinsic,
+    map_from_world,
+)
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import FrameResult, TrackingState
 

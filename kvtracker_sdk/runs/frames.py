@@ -11,7 +11,7 @@ per frame, a mask or a box:
   object that stays roughly in place, e.g. on a turntable), or with ``--bbox-once`` for the
   first frame only (the tracker predicts the object's region after it).
 
-RGB-D: ``--depth DIR`` adds a depth image registered to each colour frame (``io/depth_frames.py``:
+RGB-D: ``--depth DIR`` adds a depth image registered to each colour frame (``io/sources/depth_frames.py``:
 a TUM ``depth.txt`` matched by time, or images matched by position); the map becomes metric.
 """
 
@@ -26,9 +26,9 @@ from typing import NamedTuple
 import numpy as np
 
 from kvtracker_sdk.errors import BBoxError, ConfigError, InputError, MaskError
-from kvtracker_sdk.io.depth_frames import DepthFolder
-from kvtracker_sdk.io.regular_file import read_regular_bytes
-from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
+from kvtracker_sdk.io.files.regular_file import read_regular_bytes
+from kvtracker_sdk.io.sources.depth_frames import DepthFolder
+from kvtracker_sdk.io.sources.sources import IMAGE_SUFFIXES, ImageSource, SourceFrame, read_rgb
 from kvtracker_sdk.runs.run_loop import InputFrame
 
 __all__ = ["FrameSelection", "MaskFolder", "parse_bbox", "read_frames"]

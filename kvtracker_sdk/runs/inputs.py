@@ -18,10 +18,15 @@ from typing import Any
 
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.camera_files import read_camera_file
-from kvtracker_sdk.io.live_sources import CaptureSource, IterableSource, PacedSource, is_live_spec
-from kvtracker_sdk.io.sources import ImageSource, open_source
-from kvtracker_sdk.io.trajectory import Trajectory, read_trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory, read_trajectory
+from kvtracker_sdk.io.sources.camera_files import read_camera_file
+from kvtracker_sdk.io.sources.live_sources import (
+    CaptureSource,
+    IterableSource,
+    PacedSource,
+    is_live_spec,
+)
+from kvtracker_sdk.io.sources.sources import ImageSource, open_source
 
 __all__ = ["InputSpec", "TrackingInput", "open_input"]
 

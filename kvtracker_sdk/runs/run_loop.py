@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import FrameResult, TrackingState
 

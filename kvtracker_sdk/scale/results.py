@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.io.atomic import atomic_write
+from kvtracker_sdk.io.files.atomic import atomic_write
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.scale.sequence_run import SequenceResult
 

@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import ConfigError, EvaluationError, KVTrackerError
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.trajectory import Trajectory, write_tum
+from kvtracker_sdk.io.files.atomic import atomic_write
+from kvtracker_sdk.io.files.trajectory import Trajectory, write_tum
 from kvtracker_sdk.runs.frames import FrameSelection
 from kvtracker_sdk.runs.run_loop import InputFrame
 from kvtracker_sdk.scale.manifest import SequenceSpec, SimulatedSpec, safe_name

@@ -40,7 +40,7 @@ from kvtracker_sdk.errors import (
     StateError,
 )
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
-from kvtracker_sdk.io.map_file import MapInfo
+from kvtracker_sdk.io.map_file.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking.core.events import EventBus, EventSource

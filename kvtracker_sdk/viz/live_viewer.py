@@ -37,8 +37,8 @@ import numpy as np
 
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError
 from kvtracker_sdk.geometry.se3 import quat_wxyz_from_rotation
-from kvtracker_sdk.io.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
-from kvtracker_sdk.io.map_export import fused_point_cloud
+from kvtracker_sdk.io.exports.intrinsics import DEFAULT_FOCAL_PER_WIDTH, estimate_intrinsics
+from kvtracker_sdk.io.exports.map_export import fused_point_cloud
 from kvtracker_sdk.tracking.object.object_model import ObjectModel
 from kvtracker_sdk.types import FrameResult
 

@@ -30,8 +30,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from kvtracker_sdk.errors import MissingDependencyError
-from kvtracker_sdk.io.atomic import atomic_path
-from kvtracker_sdk.io.map_export import fused_point_cloud
+from kvtracker_sdk.io.exports.map_export import fused_point_cloud
+from kvtracker_sdk.io.files.atomic import atomic_path
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:

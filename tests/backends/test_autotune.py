@@ -1,5 +1,5 @@
 """The tuner (``backends/autotune.py``) on stand-in backends with known speeds and deviations,
-and its choice kept per machine and model (``io/tune_cache.py``).
+and its choice kept per machine and model (``io/files/tune_cache.py``).
 
 Stand-ins: each sleeps a fixed time per step (a factor of 2 or more apart, so that the median of
 a few steps orders them even on a busy CPU) and returns the reference pose plus a fixed offset
@@ -25,7 +25,7 @@ from kvtracker_sdk.backends.autotune import (
     tune,
 )
 from kvtracker_sdk.errors import ConfigError
-from kvtracker_sdk.io import tune_cache
+from kvtracker_sdk.io.files import tune_cache
 
 SIZE = (28, 28)
 # candidate -> (seconds per step, pose offset from the fp32 reference)

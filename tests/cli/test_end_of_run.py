@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.cli.failures import EXIT_CODES, ExitCode
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
 from tests.cli.conftest import SIMULATED_FRAMES
 from tests.cli.invoke import invoke
 from tests.helpers import PROJECT_ROOT, shared_path

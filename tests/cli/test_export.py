@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
 from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency, shared_path
 from tests.io.test_colmap_nerfstudio import REPROJECTION_PX, reprojection_errors
@@ -83,7 +83,7 @@ def test_colmap_export_writes_the_camera_stored_in_the_map(run: Path, tmp_path: 
     """The run tracked TUM fr2 with its published camera: the export writes that camera scaled
     to the keyframe images, not a focal fitted to the (random-weight) points."""
     pycolmap = dev_dependency("pycolmap")
-    from kvtracker_sdk.io.map_file import read_map_info
+    from kvtracker_sdk.io.map_file.map_file import read_map_info
 
     info = read_map_info(run / "desk.kvmap")
     assert info.camera is not None and info.camera.fx == 520.9  # TUM fr2, stored as given

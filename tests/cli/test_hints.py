@@ -14,7 +14,7 @@ import tomllib
 
 from kvtracker_sdk import errors
 from kvtracker_sdk.cli.failures import EXIT_CODES, ExitCode, exit_code_for
-from kvtracker_sdk.io import live_sources
+from kvtracker_sdk.io.sources import live_sources
 from tests.cli.invoke import invoke
 from tests.io.fake_capture import FakeCapture
 

@@ -19,7 +19,7 @@ def test_demo_writes_a_bag_with_every_topic_and_serves_the_view(tmp_path: Path) 
     dev_dependency("rosbags")
     from rosbags.highlevel import AnyReader
 
-    from kvtracker_sdk.io.ros2_bag import TOPICS
+    from kvtracker_sdk.io.exports.ros2_bag import TOPICS
 
     result = invoke(*DEMO, "--out", tmp_path / "run", "--ros2-bag", tmp_path / "bag",
                     "--view", "--view-port", "0")

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
 from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency, shared_path
 

@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.io import live_sources
-from kvtracker_sdk.io.camera_files import DATASET_CAMERAS
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
+from kvtracker_sdk.io.sources import live_sources
+from kvtracker_sdk.io.sources.camera_files import DATASET_CAMERAS
 from tests.cli.invoke import invoke
 from tests.helpers import shared_path
 from tests.io.fake_capture import FakeCapture

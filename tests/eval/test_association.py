@@ -7,7 +7,7 @@ import pytest
 
 from kvtracker_sdk.errors import ConfigError, EvaluationError
 from kvtracker_sdk.eval.association import associate, associate_trajectories
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 from tests.helpers import dev_dependency
 
 

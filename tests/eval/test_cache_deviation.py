@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from kvtracker_sdk.eval.cache_deviation import CacheVariant, cache_deviation, tum_frames
-from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.io.sources.sources import TumSource
 from tests.helpers import shared_path
 
 

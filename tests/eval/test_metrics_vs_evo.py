@@ -19,7 +19,7 @@ from kvtracker_sdk.eval.association import associate_trajectories
 from kvtracker_sdk.eval.metrics import ErrorStats
 from kvtracker_sdk.eval.report import evaluate_trajectories
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.trajectory import Trajectory, read_tum
+from kvtracker_sdk.io.files.trajectory import Trajectory, read_tum
 from tests.helpers import dev_dependency, shared_path
 
 TOL = 1e-6  # the bar; the two implementations actually agree to ~1e-12

@@ -16,7 +16,7 @@ from kvtracker_sdk.errors import EvaluationError, MissingDependencyError, Trajec
 from kvtracker_sdk.eval.plots import break_at_gaps, plot_trajectory
 from kvtracker_sdk.eval.report import evaluate_trajectories
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.trajectory import Trajectory
+from kvtracker_sdk.io.files.trajectory import Trajectory
 
 
 @pytest.fixture

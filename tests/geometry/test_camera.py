@@ -130,7 +130,7 @@ def test_undistortion_straightens_what_the_lens_bent() -> None:
 
 def test_pinhole_intrinsics_is_a_deprecated_name_of_camera() -> None:
     import kvtracker_sdk
-    from kvtracker_sdk.io import intrinsics
+    from kvtracker_sdk.io.exports import intrinsics
 
     with pytest.warns(DeprecationWarning, match="use kvtracker_sdk.Camera"):
         old = intrinsics.PinholeIntrinsics

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from kvtracker_sdk.io.map_file import save_map
-from kvtracker_sdk.io.map_format import metadata_digest
+from kvtracker_sdk.io.map_file.map_file import save_map
+from kvtracker_sdk.io.map_file.map_format import metadata_digest
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, join_file, make_map, split_file
 
 # (storage, compact keyframes): version 3 and version 2 files of both quantised dtypes

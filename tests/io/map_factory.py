@@ -20,7 +20,7 @@ from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.cache import CacheLayout, Keyframe, KeyframeMap, KVCache
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_format import metadata_digest
+from kvtracker_sdk.io.map_file.map_format import metadata_digest
 
 PATCH = 14
 EXTRA_TOKENS = 5
@@ -160,7 +160,7 @@ def maps_equal(a: KeyframeMap, b: KeyframeMap) -> bool:
     )
 
 
-# what a compact keyframe payload (io/keyframe_codec.py) may change: confidences by half a
+# what a compact keyframe payload (io/map_file/keyframe_codec.py) may change: confidences by half a
 # uint16 step (+ float32 rounding), points by float16's relative rounding 2**-11 (+ float32's
 # rounding of a depth x ray product, well below 1e-6)
 CONFIDENCE_ATOL = 0.5 / 65535 + 1e-7

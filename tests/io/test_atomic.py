@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_path, atomic_write
+from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS, atomic_path, atomic_write
 
 
 def test_text_and_binary_writes_replace_the_target(tmp_path: Path) -> None:

@@ -18,7 +18,7 @@ import pytest
 
 from kvtracker_sdk.errors import KVTrackerError, SourceError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.camera_files import read_camera_file
+from kvtracker_sdk.io.sources.camera_files import read_camera_file
 from tests.hostile_inputs import camera_cases
 
 DEFAULT_CASES = 300
@@ -39,7 +39,7 @@ def no_hang() -> Iterator[None]:
 
 
 def plausible(camera: Camera) -> bool:
-    from kvtracker_sdk.io.camera_files import FOCAL_PER_SIDE, MAX_DISTORTION, MAX_IMAGE_SIDE
+    from kvtracker_sdk.io.sources.camera_files import FOCAL_PER_SIDE, MAX_DISTORTION, MAX_IMAGE_SIDE
 
     side = max(camera.width, camera.height)
     low, high = FOCAL_PER_SIDE[0] * side, FOCAL_PER_SIDE[1] * side

@@ -10,8 +10,8 @@ import pytest
 
 from kvtracker_sdk.errors import InputError, SourceError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.camera_files import DATASET_CAMERAS, read_camera_file
-from kvtracker_sdk.io.sources import SevenScenesSource, open_source
+from kvtracker_sdk.io.sources.camera_files import DATASET_CAMERAS, read_camera_file
+from kvtracker_sdk.io.sources.sources import SevenScenesSource, open_source
 from tests.helpers import dev_dependency, shared_path
 
 EXPECTED = Camera(520.9086, 521.0073, 325.1414, 249.7018, 640, 480,

@@ -16,10 +16,10 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.colmap_text import write_colmap_text
-from kvtracker_sdk.io.intrinsics import estimate_intrinsics
-from kvtracker_sdk.io.nerfstudio import write_nerfstudio
-from kvtracker_sdk.io.reconstruction import Reconstruction, reconstruction_from_map
+from kvtracker_sdk.io.exports.colmap_text import write_colmap_text
+from kvtracker_sdk.io.exports.intrinsics import estimate_intrinsics
+from kvtracker_sdk.io.exports.nerfstudio import write_nerfstudio
+from kvtracker_sdk.io.exports.reconstruction import Reconstruction, reconstruction_from_map
 from tests.cli.invoke import invoke
 from tests.helpers import dev_dependency
 from tests.tracking.sim_session import SIZE, drive, make_tracker
@@ -129,5 +129,5 @@ def test_demo_run_exports_through_the_cli(tmp_path: Path) -> None:
     result = invoke("export", "colmap", run, tmp_path / "all", "--all-frames")
     assert result.exit_code == 3 and "track" in result.output  # a simulated run has no frames
     with pytest.raises(InputError, match="exactly one"):
-        from kvtracker_sdk.io.run_reconstruction import find_map
+        from kvtracker_sdk.io.exports.run_reconstruction import find_map
         find_map(tmp_path)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import DepthError, SourceError
-from kvtracker_sdk.io.depth_frames import TUM_DEPTH_SCALE, DepthFolder
-from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.io.sources.depth_frames import TUM_DEPTH_SCALE, DepthFolder
+from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.runs.frames import FrameSelection, read_frames
 from kvtracker_sdk.tracking.world.depth_input import check_depth
 

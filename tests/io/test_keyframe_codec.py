@@ -1,4 +1,4 @@
-"""The compact keyframe payload of quantised maps (``io/keyframe_codec.py``, format version 3).
+"""The compact keyframe payload of quantised maps (``io/map_file/keyframe_codec.py``, format version 3).
 
 Bounds (stated in the codec's docstring): masks and images exact, confidences within half a
 uint16 step, points within float16's relative rounding 2**-11 (DA3-style depth x ray: the
@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from kvtracker_sdk.errors import MapCorruptedError
-from kvtracker_sdk.io.keyframe_codec import decode_compact, encode_compact
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.keyframe_codec import decode_compact, encode_compact
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from kvtracker_sdk.models.da3.conventions import unproject_depth
 from tests.io.map_factory import (
     CONFIDENCE_ATOL,

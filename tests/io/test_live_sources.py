@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import ImageShapeError, SourceOpenError
-from kvtracker_sdk.io import live_sources
-from kvtracker_sdk.io.live_sources import (
+from kvtracker_sdk.io.sources import live_sources
+from kvtracker_sdk.io.sources.live_sources import (
     CaptureSource,
     IterableSource,
     PacedSource,
     is_live_spec,
 )
-from kvtracker_sdk.io.sources import SourceFrame, VideoSource, open_source
+from kvtracker_sdk.io.sources.sources import SourceFrame, VideoSource, open_source
 from tests.io.fake_capture import FakeCapture
 
 

@@ -27,8 +27,8 @@ pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="needs POSIX fil
 _CHILD = """
 import hashlib, json, os, sys, types
 from kvtracker_sdk.errors import MapError
-from kvtracker_sdk.io import map_file, map_tensors
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file import map_file, map_tensors
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map
 
 folder = sys.argv[1]
@@ -57,11 +57,11 @@ def truncating_sha256(*args, **kwargs):
         os.truncate(path, keep)
     return real_sha256(*args, **kwargs)
 shim = types.SimpleNamespace(sha256=truncating_sha256)
-for module in (map_tensors, sys.modules.get("kvtracker_sdk.io.map_reader")):
+for module in (map_tensors, sys.modules.get("kvtracker_sdk.io.map_file.map_reader")):
     if module is not None and hasattr(module, "hashlib"):
         module.hashlib = shim
 outcomes["truncated"] = outcome(path)
-for module in (map_tensors, sys.modules.get("kvtracker_sdk.io.map_reader")):
+for module in (map_tensors, sys.modules.get("kvtracker_sdk.io.map_file.map_reader")):
     if module is not None and hasattr(module, "hashlib"):
         module.hashlib = hashlib
 

@@ -25,8 +25,8 @@ import pytest
 
 from kvtracker_sdk.cache import KeyframeMap
 from kvtracker_sdk.errors import MapError, MapIOError
-from kvtracker_sdk.io import map_file
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file import map_file
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from tests.helpers import PROJECT_ROOT
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map, maps_equal
 
@@ -46,7 +46,7 @@ BIG = {
 
 _CHILD = """
 import json, os, sys, time
-from kvtracker_sdk.io.map_file import save_map
+from kvtracker_sdk.io.map_file.map_file import save_map
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map
 target, stall, spec = sys.argv[1], sys.argv[2] == "stall", json.loads(sys.argv[3])
 big = make_map(**{**spec, "size": tuple(spec["size"])})

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.map_export import (
+from kvtracker_sdk.io.exports.map_export import (
     export_keyframe_trajectory,
     export_point_cloud,
     fused_point_cloud,
 )
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
 from tests.io.map_factory import make_map
 
 

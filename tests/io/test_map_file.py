@@ -24,7 +24,7 @@ from kvtracker_sdk.errors import (
     MapModelMismatchError,
     MapVersionError,
 )
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from tests.helpers import PROJECT_ROOT
 from tests.io.map_factory import (
     TRACKER_CONFIG,
@@ -53,7 +53,7 @@ def saved(
 
 _CHILD = """
 import json, sys
-from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.io.map_file.map_file import load_map
 from tests.io.map_factory import map_digest
 print(json.dumps({p: map_digest(load_map(p).keyframe_map) for p in sys.argv[1:]}))
 """

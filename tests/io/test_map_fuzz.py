@@ -26,7 +26,7 @@ from safetensors.torch import save_file
 
 from kvtracker_sdk.cache import KeyframeMap
 from kvtracker_sdk.errors import MapCorruptedError, MapError
-from kvtracker_sdk.io.map_file import load_map, save_map
+from kvtracker_sdk.io.map_file.map_file import load_map, save_map
 from tests.io.map_factory import (
     TRACKER_CONFIG,
     backend_info,

@@ -18,7 +18,7 @@ import pytest
 
 from kvtracker_sdk.errors import MapError, MapIOError, TrackingFailedError
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.io.map_file.map_file import load_map
 from tests.io.impossible_maps import base_files, impossible_maps
 from tests.io.map_factory import rewrite_header
 from tests.tracking.sim_session import SIZE, make_tracker

@@ -10,10 +10,10 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from kvtracker_sdk.io.map_file import read_map_info, save_map
-from kvtracker_sdk.io.map_tensors import map_to_tensors, sha256_of
-from kvtracker_sdk.io.safetensors_writer import write_safetensors
-from kvtracker_sdk.io.writeback import start_writeback
+from kvtracker_sdk.io.map_file.map_file import read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_tensors import map_to_tensors, sha256_of
+from kvtracker_sdk.io.map_file.safetensors_writer import write_safetensors
+from kvtracker_sdk.io.map_file.writeback import start_writeback
 from tests.io.map_factory import backend_info, make_map
 
 

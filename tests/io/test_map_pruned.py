@@ -14,7 +14,7 @@ import pytest
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.cache.pruning import prune_cache
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from tests.helpers import PROJECT_ROOT
 from tests.io.map_factory import (
     EXTRA_TOKENS,
@@ -45,7 +45,7 @@ def save(path: Path, keyframe_map: KeyframeMap) -> Path:
 
 _CHILD = """
 import json, sys
-from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.io.map_file.map_file import load_map
 from tests.io.map_factory import map_digest
 print(json.dumps(map_digest(load_map(sys.argv[1]).keyframe_map)))
 """

@@ -24,9 +24,9 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.errors import MapFormatError
 from kvtracker_sdk.eval.cache_deviation import tum_frames
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
-from kvtracker_sdk.io.map_schema import FORMAT_VERSION, OLDEST_READABLE_VERSION
-from kvtracker_sdk.io.sources import TumSource
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_schema import FORMAT_VERSION, OLDEST_READABLE_VERSION
+from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import PROJECT_ROOT, shared_path
 from tests.io.map_factory import (
@@ -132,7 +132,7 @@ import hashlib, json, sys
 import numpy as np, torch
 torch.set_num_threads(1)
 from kvtracker_sdk.backends.torch_backend import TorchBackend
-from kvtracker_sdk.io.map_file import load_map
+from kvtracker_sdk.io.map_file.map_file import load_map
 from kvtracker_sdk.types import HeadSet
 path, weights, frame = sys.argv[1:4]
 backend = TorchBackend.from_pretrained(weights)

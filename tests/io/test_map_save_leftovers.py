@@ -15,9 +15,9 @@ import pytest
 import torch
 from safetensors import safe_open
 
-from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS
-from kvtracker_sdk.io.map_file import load_map, save_map
-from kvtracker_sdk.io.map_tensors import map_to_tensors
+from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS
+from kvtracker_sdk.io.map_file.map_file import load_map, save_map
+from kvtracker_sdk.io.map_file.map_tensors import map_to_tensors
 from tests.io.map_factory import TRACKER_CONFIG, backend_info, make_map, maps_equal
 
 

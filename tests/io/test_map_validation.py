@@ -22,8 +22,8 @@ import pytest
 
 from kvtracker_sdk.errors import MapCorruptedError, MapError, MapFormatError
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.map_file import load_map, read_map_info, save_map
-from kvtracker_sdk.io.map_schema import MAX_GENERATION
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
+from kvtracker_sdk.io.map_file.map_schema import MAX_GENERATION
 from kvtracker_sdk.tracking.persistence.tracker_maps import resolve_config
 from tests.io.map_factory import (
     TRACKER_CONFIG,

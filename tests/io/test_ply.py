@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.ply import write_ply
+from kvtracker_sdk.io.exports.ply import write_ply
 from tests.helpers import dev_dependency
 
 

@@ -14,7 +14,7 @@ from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import ConfigError, InputError
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
-from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
+from kvtracker_sdk.io.exports.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
 from kvtracker_sdk.types import FrameResult
 from tests.helpers import dev_dependency
 from tests.tracking.sim_session import SIZE, drive, make_tracker
@@ -22,7 +22,7 @@ from tests.tracking.sim_session import SIZE, drive, make_tracker
 rosbags = dev_dependency("rosbags")
 from rosbags.highlevel import AnyReader  # noqa: E402
 
-from kvtracker_sdk.io.ros2_bag import TOPICS, stamp_ns, write_ros2_bag  # noqa: E402
+from kvtracker_sdk.io.exports.ros2_bag import TOPICS, stamp_ns, write_ros2_bag  # noqa: E402
 
 POSE_TOL = 1e-9  # through quaternion, CDR float64 and back
 

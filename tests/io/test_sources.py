@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import ConfigError, InputError, SourceError
-from kvtracker_sdk.io.sources import (
+from kvtracker_sdk.io.sources.sources import (
     ImageFolderSource,
     SevenScenesSource,
     TumSource,
@@ -144,6 +144,6 @@ def test_tum_listing_errors_name_the_line_or_file(tmp_path: Path) -> None:
 
 
 def test_importing_the_sources_does_not_load_opencv() -> None:
-    code = "import sys, kvtracker_sdk.io.sources; print('cv2' in sys.modules)"
+    code = "import sys, kvtracker_sdk.io.sources.sources; print('cv2' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from kvtracker_sdk.errors import InputError, TrajectoryError
-from kvtracker_sdk.io.trajectory import (
+from kvtracker_sdk.io.files.trajectory import (
     Trajectory,
     read_kitti,
     read_trajectory,

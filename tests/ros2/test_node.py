@@ -14,7 +14,7 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import InputError, MissingDependencyError
 from kvtracker_sdk.geometry.se3 import rotation_from_quat_xyzw
-from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL
+from kvtracker_sdk.io.exports.ros_frames import DEFAULT_T_BASE_OPTICAL
 from kvtracker_sdk.ros2 import TrackerNode, image_from_message
 from kvtracker_sdk.types import TrackingState
 from tests.ros2.fake_rclpy import Message, Trigger, fake_ros

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import ConfigError
-from kvtracker_sdk.io.camera_files import DATASET_CAMERAS
-from kvtracker_sdk.io.live_sources import IterableSource
+from kvtracker_sdk.io.sources.camera_files import DATASET_CAMERAS
+from kvtracker_sdk.io.sources.live_sources import IterableSource
 from kvtracker_sdk.runs import BackendSpec, open_backend, open_input
 from kvtracker_sdk.scale import load_manifest
 from tests.helpers import shared_path

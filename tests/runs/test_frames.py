@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import BBoxError, ConfigError, MaskError, SourceError, TrajectoryError
-from kvtracker_sdk.io.sources import ImageFolderSource
-from kvtracker_sdk.io.trajectory import read_trajectory
+from kvtracker_sdk.io.files.trajectory import read_trajectory
+from kvtracker_sdk.io.sources.sources import ImageFolderSource
 from kvtracker_sdk.runs.frames import FrameSelection, MaskFolder, parse_bbox, read_frames
 
 
@@ -76,7 +76,7 @@ def test_an_undecodable_frame_does_not_end_the_sequence(folder: Path) -> None:
 
 
 def test_fifos_are_refused_not_waited_on(folder: Path) -> None:
-    from kvtracker_sdk.io.regular_file import read_regular_text
+    from kvtracker_sdk.io.files.regular_file import read_regular_text
 
     os.mkfifo(folder / "masks" / "11.png")  # reading it would block until someone writes
     with pytest.raises(MaskError, match="11.png is not a regular file"):

@@ -10,7 +10,7 @@ import cv2
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
-from kvtracker_sdk.io.trajectory import Trajectory, write_tum
+from kvtracker_sdk.io.files.trajectory import Trajectory, write_tum
 
 SIZE = (196, 252)  # Pi3's model size at d = 224 for 4:3 frames
 # a lens with distortion: the run must undistort its frames the same way on every entry point

@@ -19,7 +19,7 @@ import pytest
 
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.errors import ConfigError, KVTrackerError, TrajectoryError
-from kvtracker_sdk.io.trajectory import read_trajectory
+from kvtracker_sdk.io.files.trajectory import read_trajectory
 from kvtracker_sdk.scale.manifest import SequenceSpec, load_manifest
 from kvtracker_sdk.scale.sequence_run import run_sequence
 from tests.hostile_inputs import ground_truth_cases, manifest_cases

@@ -21,8 +21,8 @@ import pytest
 from kvtracker_sdk.backends.base import Backend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.eval.report import evaluate_trajectories
-from kvtracker_sdk.io.sources import open_source
-from kvtracker_sdk.io.trajectory import read_trajectory, write_tum
+from kvtracker_sdk.io.files.trajectory import read_trajectory, write_tum
+from kvtracker_sdk.io.sources.sources import open_source
 from kvtracker_sdk.runs import (
     FrameSelection,
     RunRecord,

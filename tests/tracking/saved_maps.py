@@ -23,7 +23,7 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.io.map_file import MapInfo
+from kvtracker_sdk.io.map_file.map_file import MapInfo
 from kvtracker_sdk.tracking.tracker import Tracker
 from tests.helpers import PROJECT_ROOT, shared_path
 from tests.tracking.sim_session import drive, make_tracker

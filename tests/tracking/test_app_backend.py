@@ -12,7 +12,7 @@ from kvtracker_sdk import Backend, Tracker, TrackerConfig, TrackingState
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import ConfigError
-from kvtracker_sdk.io.map_file import read_map_info
+from kvtracker_sdk.io.map_file.map_file import read_map_info
 from kvtracker_sdk.preprocess import DA3_UPPER_BOUND, FAMILY_PREPROCESSING, register_family
 from tests.tracking.app_backend import ACME_PREPROCESSING, AcmeBackend
 from tests.tracking.sim_session import SIZE

@@ -25,9 +25,9 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.errors import DepthError, GravityError, InputError, MapFormatError, StateError
 from kvtracker_sdk.geometry.pixel_transform import PixelTransform
-from kvtracker_sdk.io.map_file import read_map_info
-from kvtracker_sdk.io.map_format import metadata_digest
-from kvtracker_sdk.io.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
+from kvtracker_sdk.io.exports.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
+from kvtracker_sdk.io.map_file.map_file import read_map_info
+from kvtracker_sdk.io.map_file.map_format import metadata_digest
 from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
 from kvtracker_sdk.tracking.world.metric_scale import fit_depth_scale
 from kvtracker_sdk.tracking.world.world_alignment import level_rotation

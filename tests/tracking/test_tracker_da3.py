@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.errors import MapModelMismatchError
-from kvtracker_sdk.io.map_file import read_map_info
+from kvtracker_sdk.io.map_file.map_file import read_map_info
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path

@@ -29,9 +29,9 @@ from kvtracker_sdk.errors import (
     StateError,
 )
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
-from kvtracker_sdk.io import map_file
-from kvtracker_sdk.io.map_file import MapInfo, load_map, read_map_info
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
+from kvtracker_sdk.io.map_file import map_file
+from kvtracker_sdk.io.map_file.map_file import MapInfo, load_map, read_map_info
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import StateReason, TrackingState
 from tests.helpers import dev_dependency

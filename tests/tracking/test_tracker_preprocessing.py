@@ -11,7 +11,7 @@ import pytest
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import MapPreprocessingError
-from kvtracker_sdk.io.map_file import load_map, read_map_info
+from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info
 from kvtracker_sdk.preprocess import LEGACY_AREA_FLOOR
 from kvtracker_sdk.tracking.core import frame_input
 from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper

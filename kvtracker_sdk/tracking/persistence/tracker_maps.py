@@ -39,8 +39,8 @@ from kvtracker_sdk.errors import (
     StateError,
 )
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
-from kvtracker_sdk.io import map_export
-from kvtracker_sdk.io.map_file import MapInfo, load_map, save_map
+from kvtracker_sdk.io.exports import map_export
+from kvtracker_sdk.io.map_file.map_file import MapInfo, load_map, save_map
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess import PREPROCESSINGS
 

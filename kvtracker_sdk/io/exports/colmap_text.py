@@ -26,8 +26,8 @@ import numpy as np
 
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import invert_rigid, quat_wxyz_from_rotation
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.reconstruction import Reconstruction
+from kvtracker_sdk.io.exports.reconstruction import Reconstruction
+from kvtracker_sdk.io.files.atomic import atomic_write
 
 __all__ = ["COLMAP_PIXEL_OFFSET", "write_colmap_text", "write_images"]
 

@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.colmap_text import COLMAP_PIXEL_OFFSET, write_images
-from kvtracker_sdk.io.ply import write_ply
-from kvtracker_sdk.io.reconstruction import Reconstruction
+from kvtracker_sdk.io.exports.colmap_text import COLMAP_PIXEL_OFFSET, write_images
+from kvtracker_sdk.io.exports.ply import write_ply
+from kvtracker_sdk.io.exports.reconstruction import Reconstruction
+from kvtracker_sdk.io.files.atomic import atomic_write
 
 __all__ = ["OPENCV_TO_OPENGL", "write_nerfstudio"]
 

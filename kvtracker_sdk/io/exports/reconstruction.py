@@ -22,7 +22,7 @@ from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.geometry.se3 import project_to_rotation
-from kvtracker_sdk.io.export_camera import export_camera
+from kvtracker_sdk.io.exports.export_camera import export_camera
 
 __all__ = ["PosedImage", "Reconstruction", "reconstruction_from_map", "rigid"]
 

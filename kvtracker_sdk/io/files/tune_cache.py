@@ -8,7 +8,7 @@ anything loads), the tracker's resolution setting and the keyframe count. One fi
 ``$KVTRACKER_CACHE_DIR/tune``, else ``$XDG_CACHE_HOME/kvtracker_sdk/tune``, else
 ``~/.cache/kvtracker_sdk/tune`` (beside the ONNX exports' cache, ``export_onnx/reuse.py``).
 
-Written atomically (``io/atomic.py``: never half a file, concurrent writers of one key leave one
+Written atomically (``io/files/atomic.py``: never half a file, concurrent writers of one key leave one
 whole file). Read back validated: a regular file of at most 1 MB, JSON, this schema version,
 the full key equal to the one asked for (not only the digest), a known runtime and dtype and a
 thread count within the usable cores; anything else is ignored (logged) and tuned again.
@@ -30,8 +30,8 @@ import torch
 from kvtracker_sdk._version import __version__
 from kvtracker_sdk.backends.autotune import Candidate, TuneProblem, TuneResult
 from kvtracker_sdk.errors import ConfigError
-from kvtracker_sdk.io.atomic import atomic_write
-from kvtracker_sdk.io.regular_file import read_regular_text
+from kvtracker_sdk.io.files.atomic import atomic_write
+from kvtracker_sdk.io.files.regular_file import read_regular_text
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.threads import usable_cores
 

@@ -26,8 +26,8 @@ import numpy as np
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import IntrinsicsError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
-from kvtracker_sdk.io.intrinsics import estimate_intrinsics
-from kvtracker_sdk.io.map_format import MapInfo
+from kvtracker_sdk.io.exports.intrinsics import estimate_intrinsics
+from kvtracker_sdk.io.map_file.map_format import MapInfo
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["MIN_FOCAL_PER_WIDTH", "CameraOrigin", "check_fitted_focal", "export_camera"]

@@ -31,9 +31,9 @@ import torch
 
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError, MapIOError
-from kvtracker_sdk.io.map_format import MapInfo
-from kvtracker_sdk.io.map_schema import MAX_HEADER_BYTES, layer_kept
-from kvtracker_sdk.io.map_tensors import empty_cache, layer_tensor_names
+from kvtracker_sdk.io.map_file.map_format import MapInfo
+from kvtracker_sdk.io.map_file.map_schema import MAX_HEADER_BYTES, layer_kept
+from kvtracker_sdk.io.map_file.map_tensors import empty_cache, layer_tensor_names
 from kvtracker_sdk.positional_read import read_exactly
 from kvtracker_sdk.user_files import checked_path
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from kvtracker_sdk.errors import TrajectoryError
 from kvtracker_sdk.geometry.se3 import quat_xyzw_from_rotation, rotation_from_quat_xyzw
-from kvtracker_sdk.io.atomic import atomic_write
+from kvtracker_sdk.io.files.atomic import atomic_write
 from kvtracker_sdk.user_files import read_user_text
 
 __all__ = [

@@ -1,6 +1,6 @@
 """Live image sources: a camera, a network stream, any Python iterable, and a paced replay.
 
-They yield the same :class:`~kvtracker_sdk.io.sources.SourceFrame` as the file sources, so the
+They yield the same :class:`~kvtracker_sdk.io.sources.sources.SourceFrame` as the file sources, so the
 tracker and the CLI treat them alike; their length is unknown (``len() == 0``).
 
 - :class:`CaptureSource`: an OpenCV ``VideoCapture`` — a camera index (``0``), a URL or RTSP
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from kvtracker_sdk.errors import ConfigError, ImageShapeError, SourceError, SourceOpenError
-from kvtracker_sdk.io.opencv_messages import opencv_messages_logged
-from kvtracker_sdk.io.sources import ImageSource, SourceFrame
+from kvtracker_sdk.io.sources.opencv_messages import opencv_messages_logged
+from kvtracker_sdk.io.sources.sources import ImageSource, SourceFrame
 
 __all__ = [
     "CaptureSource",

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kvtracker_sdk.errors import DepthError, SourceError
-from kvtracker_sdk.io.regular_file import read_regular_bytes
-from kvtracker_sdk.io.sources import IMAGE_SUFFIXES, read_tum_listing
+from kvtracker_sdk.io.files.regular_file import read_regular_bytes
+from kvtracker_sdk.io.sources.sources import IMAGE_SUFFIXES, read_tum_listing
 
 __all__ = ["TUM_DEPTH_SCALE", "DepthFolder"]
 

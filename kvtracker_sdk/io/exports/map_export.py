@@ -12,8 +12,8 @@ import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.ply import write_ply
-from kvtracker_sdk.io.trajectory import Trajectory, write_tum
+from kvtracker_sdk.io.exports.ply import write_ply
+from kvtracker_sdk.io.files.trajectory import Trajectory, write_tum
 
 __all__ = ["export_keyframe_trajectory", "export_point_cloud", "fused_point_cloud"]
 

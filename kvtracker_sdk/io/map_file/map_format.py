@@ -34,8 +34,8 @@ from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, 
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
-from kvtracker_sdk.io.keyframe_codec import FULL, KEYFRAME_ENCODINGS
-from kvtracker_sdk.io.map_schema import (
+from kvtracker_sdk.io.map_file.keyframe_codec import FULL, KEYFRAME_ENCODINGS
+from kvtracker_sdk.io.map_file.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -110,7 +110,7 @@ class MapInfo:
     # a pruned map: tokens kept per cached layer (optional header "layer_lengths"); None = all
     layer_lengths: tuple[int, ...] | None = None
     # how the keyframe arrays are stored (optional header "keyframe_encoding", version 3):
-    # "full" (absent) or a compact encoding of io/keyframe_codec.py
+    # "full" (absent) or a compact encoding of io/map_file/keyframe_codec.py
     keyframe_encoding: str = FULL
     # the world frame's units and axes (optional header "world"; absent = MapWorld())
     world: MapWorld = MapWorld()

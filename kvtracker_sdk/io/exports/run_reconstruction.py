@@ -20,13 +20,13 @@ import numpy as np
 
 from kvtracker_sdk.errors import InputError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.reconstruction import (
+from kvtracker_sdk.io.exports.reconstruction import (
     PosedImage,
     Reconstruction,
     reconstruction_from_map,
     rigid,
 )
-from kvtracker_sdk.io.trajectory import read_tum
+from kvtracker_sdk.io.files.trajectory import read_tum
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["find_map", "load_reconstruction"]
@@ -65,8 +65,8 @@ def load_reconstruction(
     resized to the map's images); None: the camera stored in the map, else a fit to the points
     (``io.export_camera``: an implausible fit raises IntrinsicsError unless forced).
     """
-    from kvtracker_sdk.io.export_camera import export_camera
-    from kvtracker_sdk.io.map_file import load_map  # loads torch (the map's cache)
+    from kvtracker_sdk.io.exports.export_camera import export_camera
+    from kvtracker_sdk.io.map_file.map_file import load_map  # loads torch (the map's cache)
 
     map_path = find_map(run_or_map)
     loaded = load_map(map_path)
@@ -89,7 +89,7 @@ def load_reconstruction(
 
 
 def _tracked_frames(run: Path, camera: Camera, metadata: Any) -> list[PosedImage]:
-    from kvtracker_sdk.io.sources import open_source
+    from kvtracker_sdk.io.sources.sources import open_source
 
     document = _run_document(run)
     if document.get("command") != "track" or document.get("simulated"):

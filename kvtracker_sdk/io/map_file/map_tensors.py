@@ -23,9 +23,9 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError
 from kvtracker_sdk.geometry.se3 import check_rigid
-from kvtracker_sdk.io.keyframe_codec import FULL, decode_compact, encode_compact
-from kvtracker_sdk.io.map_format import MapInfo
-from kvtracker_sdk.io.map_schema import (
+from kvtracker_sdk.io.map_file.keyframe_codec import FULL, decode_compact, encode_compact
+from kvtracker_sdk.io.map_file.map_format import MapInfo
+from kvtracker_sdk.io.map_file.map_schema import (
     CONFIDENCE,
     FRAME_INDEX,
     HAS_MASK,

@@ -36,7 +36,7 @@ writer picks the oldest version that holds the map. Every version back to
 ``OLDEST_READABLE_VERSION`` loads.
 
 Version 3 adds the compact keyframe payload of quantised maps (header field
-``keyframe_encoding``, ``compact-xyz`` or ``compact-depth``; ``io/keyframe_codec.py``): the mask as
+``keyframe_encoding``, ``compact-xyz`` or ``compact-depth``; ``io/map_file/keyframe_codec.py``): the mask as
 bits, confidences as uint16 fixed point and the local points as float16 (or DA3-style depth
 plus per-column/per-row ray slopes) instead of the ``keyframes.mask``, ``.confidence`` and
 ``.local_points`` rows above, which a quantised map's K/V would otherwise leave at a third of its
@@ -52,7 +52,7 @@ from typing import Any, NamedTuple
 from kvtracker_sdk.cache.keyframe_map import LEGACY_PREPROCESSING
 from kvtracker_sdk.cache.kv_cache import CacheLayout
 from kvtracker_sdk.errors import MapCorruptedError, MapFormatError
-from kvtracker_sdk.io.keyframe_codec import FULL, compact_tensor_specs
+from kvtracker_sdk.io.map_file.keyframe_codec import FULL, compact_tensor_specs
 
 __all__ = [
     "CACHE_DTYPES",

@@ -5,7 +5,7 @@ the target, mode 0600) and renames it; a process killed meanwhile leaves that fi
 a name no cleanup can attribute to a map (each can be the size of the whole map).
 ``safetensors.torch.save`` avoids the file but returns the whole file as one ``bytes`` object: a
 second copy of the map in memory. The format is small enough to write directly into the handle
-of :func:`kvtracker_sdk.io.atomic.atomic_write`: an 8-byte little-endian header length, the JSON
+of :func:`kvtracker_sdk.io.files.atomic.atomic_write`: an 8-byte little-endian header length, the JSON
 header (tensor name -> dtype, shape, data offsets, plus ``__metadata__``) padded with spaces to a
 multiple of 8 bytes, then each tensor's bytes, in the order safetensors itself uses (largest
 element size first, then by name, so every tensor starts aligned to its element size).
@@ -27,7 +27,7 @@ from typing import IO
 
 import torch
 
-from kvtracker_sdk.io.writeback import start_writeback
+from kvtracker_sdk.io.map_file.writeback import start_writeback
 
 __all__ = ["write_safetensors"]
 

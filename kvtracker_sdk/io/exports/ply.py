@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.io.atomic import atomic_write
+from kvtracker_sdk.io.files.atomic import atomic_write
 
 __all__ = ["write_ply"]
 

@@ -22,7 +22,7 @@ ROS distortion models ``plumb_bob`` and ``rational_polynomial`` are OpenCV's 5 a
 image, and the SDK undistorts with K itself (``preprocess/undistort.py``).
 
 ``DATASET_CAMERAS`` holds the published intrinsics of the TUM RGB-D cameras (fr1, fr2, fr3) and of
-7-Scenes; ``io/sources.py`` attaches them to the sequences it opens.
+7-Scenes; ``io/sources/sources.py`` attaches them to the sequences it opens.
 """
 
 from __future__ import annotations

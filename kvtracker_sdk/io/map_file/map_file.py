@@ -45,17 +45,17 @@ from kvtracker_sdk.errors import (
     MapModelMismatchError,
 )
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
-from kvtracker_sdk.io.atomic import STALE_TEMP_SECONDS, atomic_write
-from kvtracker_sdk.io.keyframe_codec import KEYFRAME_ENCODINGS
-from kvtracker_sdk.io.map_format import (
+from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS, atomic_write
+from kvtracker_sdk.io.map_file.keyframe_codec import KEYFRAME_ENCODINGS
+from kvtracker_sdk.io.map_file.map_format import (
     MapInfo,
     encode_metadata,
     gauge_problem,
     loads_strict,
     parse_header,
 )
-from kvtracker_sdk.io.map_reader import MapFile, open_map_file, read_map_tensors
-from kvtracker_sdk.io.map_schema import (
+from kvtracker_sdk.io.map_file.map_reader import MapFile, open_map_file, read_map_tensors
+from kvtracker_sdk.io.map_file.map_schema import (
     CACHE_DTYPES,
     DENSE_FORMAT_VERSION,
     FORMAT_NAME,
@@ -63,8 +63,13 @@ from kvtracker_sdk.io.map_schema import (
     PRUNED_FORMAT_VERSION,
     QUANTIZED_CACHE_DTYPES,
 )
-from kvtracker_sdk.io.map_tensors import check_digests, map_from_parts, map_to_tensors, sha256_of
-from kvtracker_sdk.io.safetensors_writer import write_safetensors
+from kvtracker_sdk.io.map_file.map_tensors import (
+    check_digests,
+    map_from_parts,
+    map_to_tensors,
+    sha256_of,
+)
+from kvtracker_sdk.io.map_file.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
 
 __all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
@@ -213,7 +218,7 @@ def save_map(
     the tracking mode ("scene", "object"); ``camera`` the session's input-image intrinsics
     (optional; ``camera_source`` says where they came from). The cache is snapshotted under its
     lock. ``compact_keyframes`` stores the keyframes' masks, confidences and points compactly
-    (``io/keyframe_codec.py``: float16 points, format version 3); None (default) does so exactly
+    (``io/map_file/keyframe_codec.py``: float16 points, format version 3); None (default) does so exactly
     when the cache is quantised, so a dense map keeps them bit for bit. If anything fails,
     ``path`` still holds its previous content and no temporary file remains.
     """

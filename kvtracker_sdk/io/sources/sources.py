@@ -36,9 +36,9 @@ from kvtracker_sdk.errors import (
     TrajectoryError,
 )
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.camera_files import DATASET_CAMERAS
-from kvtracker_sdk.io.opencv_messages import opencv_messages_logged
-from kvtracker_sdk.io.trajectory import Trajectory, read_tum
+from kvtracker_sdk.io.files.trajectory import Trajectory, read_tum
+from kvtracker_sdk.io.sources.camera_files import DATASET_CAMERAS
+from kvtracker_sdk.io.sources.opencv_messages import opencv_messages_logged
 
 __all__ = [
     "ImageFolderSource",
@@ -237,7 +237,10 @@ def open_source(path: str | os.PathLike[str], *, fps: float = 30.0) -> ImageSour
     path exists — a camera index (``"0"``) or a stream URL (``rtsp://...``), read live by
     ``io.live_sources.CaptureSource``."""
     target = Path(path)
-    from kvtracker_sdk.io.live_sources import is_live_spec, open_live_source  # imports this module
+    from kvtracker_sdk.io.sources.live_sources import (  # imports this module
+        is_live_spec,
+        open_live_source,
+    )
 
     if is_live_spec(path) and not target.exists():  # a camera index or a stream URL
         return open_live_source(os.fspath(path))

@@ -1,6 +1,6 @@
 """Record a tracking session as a ROS 2 bag (MCAP storage) with ``rosbags``: no ROS install.
 
-Topics (frames and pose jumps: ``io/ros_frames.py``):
+Topics (frames and pose jumps: ``io/exports/ros_frames.py``):
 
 | topic | type | when |
 |---|---|---|
@@ -40,10 +40,10 @@ import numpy as np
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.io.intrinsics import estimate_intrinsics
-from kvtracker_sdk.io.map_export import fused_point_cloud
-from kvtracker_sdk.io.ros2_messages import RosMessages
-from kvtracker_sdk.io.ros_frames import (
+from kvtracker_sdk.io.exports.intrinsics import estimate_intrinsics
+from kvtracker_sdk.io.exports.map_export import fused_point_cloud
+from kvtracker_sdk.io.exports.ros2_messages import RosMessages
+from kvtracker_sdk.io.exports.ros_frames import (
     FrameNames,
     OdometrySplit,
     checked_extrinsic,
