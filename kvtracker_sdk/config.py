@@ -221,7 +221,7 @@ class ThreadingConfig(_Section):
 
 
 class MapCompactionConfig(_Section):
-    """Smaller maps and cheaper keyframes (issue 16; ``kvtracker_sdk.cache.pruning``). Every
+    """Smaller maps and cheaper keyframes (``kvtracker_sdk.cache.pruning``). Every
     switch is off by default: the accuracy cost on real weights is unmeasured (``benchmarks/README.md``,
     "Token pruning")."""
 
@@ -285,12 +285,13 @@ class TrackerConfig(_Section):
     threading: ThreadingConfig = ThreadingConfig()
     compaction: MapCompactionConfig = MapCompactionConfig()
     cache_dtype: Literal["backend", "int8", "fp8"] = "backend"
-    """How the map's K/V are kept between rebuilds and in saved maps (issue 16): ``backend``
+    """How the map's K/V are kept between rebuilds and in saved maps: ``backend``
     (default) in the backend's dtype (fp32 or bf16); ``int8`` or ``fp8`` (e4m3) quantised with a
     scale per token and head, ~1.94x smaller than bf16 (K/V), dequantised one layer at a time while
     tracking (``kvtracker_sdk.cache.quantization``). Off by default: on the golden reduced models
-    int8 moves poses 10-30x less than the bf16 backend does, but the cost on real weights is
-    unmeasured. PyTorch backends only (``OnnxBackend`` refuses quantised caches)."""
+    int8 moves poses far less than the bf16 backend does (``benchmarks/README.md``, "Compact maps:
+    quantised K/V"), but the cost on real weights is unmeasured. PyTorch backends only
+    (``OnnxBackend`` refuses quantised caches)."""
 
     heads: HeadSet = HeadSet.CONFIDENCE
     """Heads computed per tracked frame. CONFIDENCE is the default because loss detection needs

@@ -309,7 +309,8 @@ class MapCorruptedError(MapError):
 
 class MapPreprocessingError(MapError):
     """A map's keyframes were prepared by another preprocessing than new keyframes would be (e.g.
-    a map saved before issue 11): extending it would mix two input pipelines in one mapping pass.
+    a map saved with the SDK's earlier ``legacy-area-floor`` preprocessing): extending it would
+    mix two input pipelines in one mapping pass.
     Tracking against it works; extending needs an explicit ``rebuild=True`` when loading."""
 
 

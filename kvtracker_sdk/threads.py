@@ -1,10 +1,10 @@
 """CPU thread settings that do not fall over when the cores are busy (layer 0: no torch here,
 so that ``kvtracker_sdk/__init__.py`` can set the wait policy before torch loads).
 
-Two OpenMP threads on a 2-core CPU that other processes also use ran a tracking step 2-5x slower
-than one thread: at every parallel region the threads wait for each other, and with libgomp's
-default (active) wait policy a waiting thread spins for a while, taking the core the late thread
-needs. So:
+Two OpenMP threads on a 2-core CPU that other processes also use run a tracking step several
+times slower than one thread: at every parallel region the threads wait for each other, and with
+libgomp's default (active) wait policy a waiting thread spins for a while, taking the core the
+late thread needs. So:
 
 - ``import kvtracker_sdk`` sets ``OMP_WAIT_POLICY=PASSIVE`` (waiting threads sleep) unless the
   variable is set or torch was imported first; ``wait_policy()`` reports what torch's OpenMP
@@ -18,12 +18,11 @@ needs. So:
   explicit ``OMP_WAIT_POLICY=ACTIVE`` is a choice and is honoured.
 - ``choose_threads`` picks the intra-op thread count: with passive waiting, every core this
   process may run on (``os.sched_getaffinity``): a sleeping waiter costs nothing, and a process
-  with more runnable threads gets a larger share of a busy CPU (measured under a load average of
-  7 on 2 cores, DA3-Small: 2 passive threads 0.26 s median, 1 thread 0.62 s, 2 spinning threads
-  3.98 s; ``benchmarks/thread_defaults.py``). With spinning waiters (torch was imported before
-  ``kvtracker_sdk``, or the policy was set active), only the cores other processes leave free
-  (1-minute load average), at least 1. Never more than torch is already set to
-  (``OMP_NUM_THREADS`` or a caller's ``torch.set_num_threads`` stay upper bounds).
+  with more runnable threads gets a larger share of a busy CPU (``benchmarks/thread_defaults.py``;
+  figures: ``benchmarks/README.md#figures-behind-the-code``). With spinning waiters (torch was
+  imported before ``kvtracker_sdk``, or the policy was set active), only the cores other
+  processes leave free (1-minute load average), at least 1. Never more than torch is already set
+  to (``OMP_NUM_THREADS`` or a caller's ``torch.set_num_threads`` stay upper bounds).
   ``TorchBackend(threads=None)`` applies it; an ``int`` overrides it.
 
 ``torch.set_num_threads`` is process-wide: the last backend made (or the caller) sets it.

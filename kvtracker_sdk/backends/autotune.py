@@ -278,12 +278,7 @@ def tune(
     reported and skipped; ``BackendError`` when the fp32 or bf16 torch reference fails.
     """
     began, load_start = time.perf_counter(), _load()
-    reference_candidate = next((c for c in candidates if c.runtime == "torch"
-                                and c.dtype == REFERENCE_DTYPE), None)  # fmt: skip
-    if reference_candidate is None or not any(
-        c.runtime == "torch" and c.dtype == BOUND_DTYPE for c in candidates
-    ):
-        raise ConfigError("the candidates must include torch float32 and torch bfloat16")
+    reference_candidate = _reference_candidate(candidates)
     threads_before = torch.get_num_threads()
     groups: dict[tuple[str, str, int | None], list[Candidate]] = {}
     for candidate in candidates:
@@ -292,6 +287,89 @@ def tune(
     height, width = problem.model_size(reference.info.family, reference.info.patch_size)
     if images is None:
         images = synthetic_frames(problem.keyframes + query_frames, height, width)
+    reference_pass = _reference_pass(reference, images, problem)
+    together = _fits_together(reference, list(groups)) if interleave is None else interleave
+    measured = _Measurements()
+    try:
+        _measure_groups(open_candidate, groups, reference, reference_candidate.backend_key,
+                        reference_pass, problem.heads, measured,
+                        together=together, seconds=seconds, min_rounds=min_rounds)  # fmt: skip
+    finally:
+        for live in measured.lives:
+            if live.backend is not reference:
+                live.backend.close()
+        reference.close()
+        torch.set_num_threads(threads_before)
+    result = _choose(candidates, measured.samples, measured.deviations, measured.notes, together,
+                     load_start, began)  # fmt: skip
+    result.extra.update(model_size=(height, width), fingerprint=reference.info.weights_fingerprint)
+    return result
+
+
+def _measure_groups(
+    open_candidate: Callable[[Candidate], Backend],
+    groups: dict[tuple[str, str, int | None], list[Candidate]],
+    reference: Backend,
+    reference_key: tuple[str, str, int | None],
+    reference_pass: _ReferencePass,
+    heads: HeadSet,
+    measured: _Measurements,
+    *,
+    together: bool,
+    seconds: float,
+    min_rounds: int,
+) -> None:
+    """Each group's deviations, then its step times: each group on its own (its backend closed
+    after), or, ``together``, every group in the same rounds (their backends left open in
+    ``measured.lives`` for the caller to close). The reference backend is never closed here."""
+    for key, members in groups.items():
+        if key == reference_key:
+            backend: Backend | None = reference
+        else:
+            backend = _open_group(open_candidate, key, members, measured)
+        if backend is None:
+            continue
+        live = _Live(backend, _backend_cache(reference_pass.cache, backend), members)
+        if not _measure_deviations(live, reference_pass, heads, measured):
+            if backend is not reference:
+                backend.close()
+            continue
+        if together:
+            measured.lives.append(live)
+        else:
+            measured.samples.update(_time_rounds([live], reference_pass.queries, heads,
+                                                 seconds / len(groups), min_rounds))  # fmt: skip
+            if backend is not reference:
+                backend.close()
+    if together and measured.lives:
+        measured.samples.update(
+            _time_rounds(measured.lives, reference_pass.queries, heads, seconds, min_rounds)
+        )
+
+
+def _reference_candidate(candidates: Sequence[Candidate]) -> Candidate:
+    """The torch float32 candidate (the reference poses); ConfigError without it or without a
+    torch bfloat16 one (the deviation bound)."""
+    reference_candidate = next((c for c in candidates if c.runtime == "torch"
+                                and c.dtype == REFERENCE_DTYPE), None)  # fmt: skip
+    if reference_candidate is None or not any(
+        c.runtime == "torch" and c.dtype == BOUND_DTYPE for c in candidates
+    ):
+        raise ConfigError("the candidates must include torch float32 and torch bfloat16")
+    return reference_candidate
+
+
+@dataclass(frozen=True)
+class _ReferencePass:
+    """The reference's map of the keyframes and its poses of the query frames."""
+
+    cache: KVCache
+    queries: np.ndarray  # uint8 [Q, H, W, 3]
+    poses: np.ndarray  # float64 [Q, 4, 4] T_world_cam
+
+
+def _reference_pass(reference: Backend, images: np.ndarray, problem: TuneProblem) -> _ReferencePass:
+    """Map ``images``' first ``problem.keyframes`` frames with the reference and track the rest."""
     keyframes, queries = images[: problem.keyframes], images[problem.keyframes :]
     if len(queries) < 1:
         raise ConfigError("tune needs at least one query frame after the keyframes")
@@ -300,52 +378,49 @@ def tune(
         np.asarray(reference.track(q, mapped.cache, heads=problem.heads).pose, np.float64)
         for q in queries
     ])  # fmt: skip
-    together = _fits_together(reference, list(groups)) if interleave is None else interleave
-    deviations: dict[Candidate, float] = {}
-    samples: dict[Candidate, list[float]] = {}
-    notes: dict[Candidate, str] = {}
-    lives: list[_Live] = []
+    return _ReferencePass(mapped.cache, queries, reference_poses)
+
+
+@dataclass
+class _Measurements:
+    """What tuning found per candidate: pose deviation, step times, and why it was left out."""
+
+    deviations: dict[Candidate, float] = field(default_factory=dict)
+    samples: dict[Candidate, list[float]] = field(default_factory=dict)
+    notes: dict[Candidate, str] = field(default_factory=dict)
+    lives: list[_Live] = field(default_factory=list)  # backends kept open to be timed together
+
+
+def _open_group(
+    open_candidate: Callable[[Candidate], Backend],
+    key: tuple[str, str, int | None],
+    members: list[Candidate],
+    measured: _Measurements,
+) -> Backend | None:
+    """The backend ``members`` share, or None (noted for each) when it cannot be built."""
     try:
-        for key, members in groups.items():
-            if key == reference_candidate.backend_key:
-                backend = reference
-            else:
-                try:
-                    backend = open_candidate(members[0])
-                except Exception as exc:  # a runtime missing or failing here: reported, skipped
-                    for candidate in members:
-                        notes[candidate] = f"unavailable: {type(exc).__name__}: {exc}"[:200]
-                    _log.warning("tune candidate unavailable", candidate=key, error=str(exc)[:300])
-                    continue
-            live = _Live(backend, _backend_cache(mapped.cache, backend), members)
-            try:
-                for candidate in members:
-                    poses = np.stack([_step(live, candidate, q, problem.heads) for q in queries])
-                    deviations[candidate] = float(np.abs(poses - reference_poses).max())
-            except Exception as exc:  # noqa: BLE001 - a failing runtime is a measurement
-                for candidate in members:
-                    notes[candidate] = f"failed: {type(exc).__name__}: {exc}"[:200]
-                if backend is not reference:
-                    backend.close()
-                continue
-            if together:
-                lives.append(live)
-            else:
-                samples.update(_time_rounds([live], queries, problem.heads, seconds / len(groups),
-                                            min_rounds))  # fmt: skip
-                if backend is not reference:
-                    backend.close()
-        if together and lives:
-            samples.update(_time_rounds(lives, queries, problem.heads, seconds, min_rounds))
-    finally:
-        for live in lives:
-            if live.backend is not reference:
-                live.backend.close()
-        reference.close()
-        torch.set_num_threads(threads_before)
-    result = _choose(candidates, samples, deviations, notes, together, load_start, began)
-    result.extra.update(model_size=(height, width), fingerprint=reference.info.weights_fingerprint)
-    return result
+        return open_candidate(members[0])
+    except Exception as exc:  # a runtime missing or failing here: reported, skipped
+        for candidate in members:
+            measured.notes[candidate] = f"unavailable: {type(exc).__name__}: {exc}"[:200]
+        _log.warning("tune candidate unavailable", candidate=key, error=str(exc)[:300])
+        return None
+
+
+def _measure_deviations(
+    live: _Live, reference: _ReferencePass, heads: HeadSet, measured: _Measurements
+) -> bool:
+    """Record each of ``live``'s candidates' pose deviation from the reference; False (noted
+    for each) when the runtime fails on a query frame."""
+    try:
+        for candidate in live.candidates:
+            poses = np.stack([_step(live, candidate, q, heads) for q in reference.queries])
+            measured.deviations[candidate] = float(np.abs(poses - reference.poses).max())
+    except Exception as exc:  # noqa: BLE001 - a failing runtime is a measurement
+        for candidate in live.candidates:
+            measured.notes[candidate] = f"failed: {type(exc).__name__}: {exc}"[:200]
+        return False
+    return True
 
 
 def _load() -> float | None:

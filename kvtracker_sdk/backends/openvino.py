@@ -16,10 +16,9 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 
 ``precision`` "float32" (default) computes the export's function within float rounding;
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
-``openvino_runtime``) that grows with the map and depends on the CPU: at 32 keyframes
-DA3-Small's poses deviated about twice as much as PyTorch's bf16 on an AMD EPYC with
-AVX512-BF16 (``benchmarks/results/auto_choice.md``; Pi3 ``large``'s did not), 4.6 times as much
-on a Xeon with AMX (as reported), and "float32" was nearly as fast (README, model choice).
+``openvino_runtime``) that grows with the map and depends on the CPU: on large DA3 maps its poses
+can deviate several times more than PyTorch's bf16 while "float32" is nearly as fast (figures:
+``benchmarks/README.md#figures-behind-the-code``; README, model choice).
 ``kvtracker tune`` measures it on the machine at hand and keeps bf16 only within PyTorch bf16's
 deviation (``backends/autotune.py``). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
@@ -66,12 +65,12 @@ class OpenVinoBackend(ExportBackend):
     where OpenVINO sees one. ``precision``: "float32" (default), "bfloat16" or "float16" (the
     inference precision hint; the cache stays float32). ``threads``: CPU inference threads
     (None: one per physical core). ``static_shapes``: track on graphs compiled for the
-    current map's exact shapes (``openvino_static``; one compile, ~0.3 s for DA3-Small's
-    decoder, on the first frame after the map's keyframe count or resolution changes): None
-    (default) = every tracking graph in float32, the encoder only with a bf16/f16 hint (the
-    static decoder's bf16 poses deviate more; ``openvino_runtime.static_graphs``); True = every
-    tracking graph (fastest: DA3-Small bf16 step 1.15x the encoder-only one); False = none; or
-    graph names.
+    current map's exact shapes (``openvino_static``; one compile, on the first frame after the
+    map's keyframe count or resolution changes): None (default) = every tracking graph in
+    float32, the encoder only with a bf16/f16 hint (the static decoder's bf16 poses deviate more;
+    ``openvino_runtime.static_graphs``); True = every tracking graph (the fastest); False = none;
+    or graph names. Measured speeds and compile times:
+    ``benchmarks/README.md#figures-behind-the-code``.
     """
 
     def __init__(

@@ -5,12 +5,13 @@ frontend keeps the flag, the kernel does not apply it: openvinotoolkit/openvino#
 2026.4). Pi3's encoder resizes its positional embeddings with exactly that node (PyTorch's
 ``interpolate(mode="bicubic", antialias=True)``, which the exporter writes as ONNX ``Resize``
 cubic, antialias=1, exclude_outside=1, a=-0.5, half_pixel): read as is, the encoder's tokens
-differed from ONNX Runtime's by 1.2 (of 4.7) and poses by 0.05 at 112 x 154.
+and the poses differ from ONNX Runtime's far beyond float rounding.
 
 That ONNX node is the filter Pillow's bicubic resize applies (the ONNX operator was specified to
 match it), and OpenVINO's ``Interpolate-11`` has it as mode ``bicubic_pillow``: switching the
-mode made the encoder agree with ONNX Runtime within 5e-6 at every size tried (112 x 154 to
-700 x 700). Depth Anything 3's graphs have no such node.
+mode makes the encoder agree with ONNX Runtime within float rounding at every size tried
+(figures: ``benchmarks/README.md#figures-behind-the-code``). Depth Anything 3's graphs have no
+such node.
 """
 
 from __future__ import annotations

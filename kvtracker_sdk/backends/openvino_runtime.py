@@ -20,8 +20,8 @@ Choices, and why:
   C-contiguous and read in place, whatever their scratch capacity. Outputs are copied (the next
   inference would overwrite them).
 - ``static_shapes``: tracking passes run on graphs compiled for their exact input shapes,
-  ``past_length`` folded in (``openvino_static``: DA3-Small's bf16 step 1.15x faster with the
-  encoder static, 1.3x with every tracking graph; one compile per new map shape, logged);
+  ``past_length`` folded in (``openvino_static``: faster, at one compile per new map shape,
+  logged; figures: ``benchmarks/README.md#figures-behind-the-code``);
   by default every tracking graph in float32 and the encoder only with a bf16/f16 hint
   (``static_graphs``). Mapping passes, whose keyframe count changes every rebuild, run on the
   dynamic graphs.
@@ -106,8 +106,7 @@ def static_graphs(
     stays dynamic), False = none, the names given (``ConfigError`` for another name), or None
     (default) = every one in float32, the encoder only with a bf16/f16 hint: the static decoder
     computes bf16 differently (more of it fused in bf16), and its poses deviated more from fp32
-    (DA3-Small, 8 frames: mean 9.4e-3 vs 8.8e-3 dynamic, 6.9e-3 encoder-only; see
-    ``benchmarks/results/runtimes_da3_small_224_n8_openvino_static_run*.json``)."""
+    than the dynamic decoder's (figures: ``benchmarks/README.md#figures-behind-the-code``)."""
     tracking = {name for name in manifest.graphs if name != "decoder_map"}
     if static_shapes is None:
         return tracking if precision == "float32" else {"encoder"}

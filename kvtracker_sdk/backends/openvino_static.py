@@ -3,17 +3,16 @@
 An export's graphs have dynamic dimensions: the frame count, the patch grid and the cache's
 length (``onnx_manifest``). OpenVINO's CPU plugin runs a graph reshaped to static shapes markedly
 faster than the dynamic one: it plans memory and picks kernels once, and shape-dependent
-subgraphs fold away. Measured on DA3-Small at 224², N = 8, bf16, 1 thread (CPU time per call):
-the tracking decoder 41.9 → 33.7 ms, the encoder 13.8 → 10.6 ms; reshaping alone gave the
-decoder only 40.0 ms — the rest comes from ``past_length`` becoming a constant (the cache slice
-and the attention over it are then static too).
+subgraphs fold away. Reshaping alone gains little; most of the gain comes from ``past_length``
+becoming a constant (the cache slice and the attention over it are then static too). Figures:
+``benchmarks/README.md#figures-behind-the-code``.
 
 In a tracker those shapes change only when the map does (a keyframe more, a rebuild at another
 resolution), so ``StaticGraphs`` compiles a graph per input signature on first use and keeps the
 last few (a small LRU per graph): the first frame after the map changes pays one compile
-(DA3-Small's tracking decoder: ~0.3 s; logged as ``openvino.static_compile`` with its seconds,
-and kept in ``compile_seconds``). Integer scalar inputs (``past_length``) are part of the
-signature and folded into the graph as constants. The graphs are the ones read from the verified
+(logged as ``openvino.static_compile`` with its seconds, and kept in ``compile_seconds``).
+Integer scalar inputs (``past_length``) are part of the signature and folded into the graph as
+constants. The graphs are the ones read from the verified
 export (no compiled-blob cache on disk, so nothing skips the manifest's sha256 check).
 
 A graph OpenVINO cannot compile static-shaped runs dynamic from then on (``infer`` returns None;

@@ -125,6 +125,29 @@ def _accelerations(device: torch.device) -> tuple[str, ...]:
     return ("sdpa", f"cpu-{torch.backends.cpu.get_cpu_capability().lower()}")
 
 
+def _placed(
+    model: nn.Module, network: Network, dtype: torch.dtype, target: torch.device
+) -> nn.Module:
+    """``model`` cast to ``dtype`` (the family's precision rules), moved to ``target``, in eval
+    mode; BackendError when it cannot be moved there."""
+    try:
+        network.set_precision(dtype)
+        return model.to(target).eval()
+    except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
+        raise BackendError(f"cannot move the model to {target}: {exc}") from exc
+
+
+def _keep_fp32_convolutions(target: torch.device, dtype: torch.dtype) -> None:
+    """Turn cuDNN's TF32 off, process-wide, for an fp32 backend on CUDA.
+
+    PyTorch lets cuDNN run fp32 convolutions in TF32 by default, which moves DA3's depth off the
+    golden vectors by more than their tolerance (``docs/gpu.md``): fp32 means fp32.
+    """
+    if target.type == "cuda" and dtype == torch.float32 and torch.backends.cudnn.allow_tf32:
+        torch.backends.cudnn.allow_tf32 = False
+        _log.info("cuDNN TF32 turned off for an fp32 backend on CUDA (process-wide)")
+
+
 class TorchBackend:
     """Pi3 or Depth Anything 3 on PyTorch; implements ``kvtracker_sdk.backends.base.Backend``.
 
@@ -157,19 +180,9 @@ class TorchBackend:
         network = cast(Network, model)
         fingerprint = weights_fingerprint or hash_weights(model.state_dict())
         target = _available_device(device)
-        try:
-            network.set_precision(compute_dtype)
-            self._model: nn.Module | None = model.to(target).eval()
-        except (AssertionError, RuntimeError) as exc:  # e.g. a CUDA index that does not exist
-            raise BackendError(f"cannot move the model to {target}: {exc}") from exc
+        self._model: nn.Module | None = _placed(model, network, compute_dtype, target)
         use_cached_kernel(model, attention)
-        if target.type == "cuda" and compute_dtype == torch.float32 and (
-            torch.backends.cudnn.allow_tf32
-        ):
-            # process-wide: PyTorch lets cuDNN run fp32 convolutions in TF32 by default, which
-            # moved DA3's depth 2e-3 off the golden vectors (tolerance 1e-4); fp32 means fp32
-            torch.backends.cudnn.allow_tf32 = False
-            _log.info("cuDNN TF32 turned off for an fp32 backend on CUDA (process-wide)")
+        _keep_fp32_convolutions(target, compute_dtype)
         torch.set_num_threads(self._threads.threads)
         _log.info("torch threads", settings=self._threads.describe())
         self._compiled: CompiledTracking | None = None

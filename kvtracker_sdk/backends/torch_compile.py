@@ -19,8 +19,8 @@ saved map, a map that is rebuilt rarely) more than for a map that grows every fe
 Inductor keeps its compiled kernels and FX graphs in ``$TORCHINDUCTOR_CACHE_DIR``, which this module
 sets, unless it is set, to ``CompileOptions.cache_dir`` or ``<user cache>/kvtracker_sdk/inductor``
 (``$KVTRACKER_CACHE_DIR/inductor`` when that is set): a later process with the same model and shapes
-reuses them. Dynamo still traces the model in every process, so the first call is shorter, not free:
-DA3-Small bf16 at 224, frozen, took 16 s with a warm cache against 68-125 s cold (2 busy cores).
+reuses them. Dynamo still traces the model in every process, so the first call is shorter, not free
+(figures: ``benchmarks/README.md#figures-behind-the-code``).
 
 Results differ from eager by the reordering of floating-point sums (fused kernels): the runtimes
 benchmark measures the pose difference (``benchmarks/runtimes.py``). Without a usable compiler

@@ -6,7 +6,8 @@ and tokens run keyframe by keyframe. K is stored exactly as it enters the attent
 qk-norm and RoPE), so a tracking pass only has to attend to it.
 
 Why preallocated buffers: the official code grows the cache with ``torch.cat`` in all layers for
-every tracked frame (294 ms per step at 32 keyframes in fp32, 653 ms at 64). Here every layer owns
+every tracked frame, a copy of the whole cache per step that grows with the map (figures:
+``benchmarks/README.md#figures-behind-the-code``). Here every layer owns
 one buffer with spare capacity: a tracking pass writes its own K/V into the scratch region right
 after ``length`` and attends over ``[:length + query_tokens]`` — a copy of the query's tokens only.
 Appending a keyframe writes into the spare capacity; the buffer grows geometrically when full.

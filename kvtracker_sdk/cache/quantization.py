@@ -8,10 +8,11 @@ storage dtype plus float scales, symmetric (no zero point)::
 
 Scales are absmax / qmax over one token's values in one head ([1, heads, tokens, 1];
 ``axis="token_head"``), so tokens are independent: appending, dropping or pruning tokens never
-touches the other tokens' data. Measured on the golden Pi3 and DA3 over the 20 TUM frames
-(``benchmarks/compact_maps.py``, ``kvtracker_sdk/eval/cache_deviation.py``): one scale per token
-over all heads deviated 2-3x more, and per-channel K scales (KIVI's choice) no less than per-token
-ones, while they would need re-quantisation whenever tokens are added.
+touches the other tokens' data. On the golden Pi3 and DA3 over the 20 TUM frames
+(``benchmarks/compact_maps.py``, ``kvtracker_sdk/eval/cache_deviation.py``) one scale per token
+over all heads deviated more, and per-channel K scales (KIVI's choice) no less than per-token
+ones, while they would need re-quantisation whenever tokens are added (figures:
+``benchmarks/README.md#figures-behind-the-code``).
 
 Scales are stored as float8 e5m2 (range 6e-5 .. 57344), **rounded up** before the data are divided
 by them: the stored scale is exactly the one the data were made with, and rounding up never clips

@@ -5,8 +5,8 @@
     kvtracker eval run/trajectory.txt groundtruth.txt               ATE / RPE / cm-degree
     kvtracker map info office.kvmap                                 what a map file holds
 
-Each command module exposes ``register(app)``; a group added later (``export_onnx``, with the
-ONNX issue) is registered as soon as its module exists. Command modules import the tracker,
+Each command module exposes ``register(app)``; an optional group (``export_onnx``) is
+registered only where its module exists. Command modules import the tracker,
 torch and OpenCV inside their functions, so ``kvtracker --help`` stays fast.
 
 The global options (``-v``, ``-q``, ``--log-json``) may also follow the command
@@ -30,7 +30,7 @@ from kvtracker_sdk.cli.logging_setup import CliState, configure_logging
 __all__ = ["app", "main"]
 
 _COMMAND_MODULES = ("track", "demo", "evaluate", "eval_many", "map_cmd", "export_cmd", "tune")
-_OPTIONAL_COMMAND_MODULES = ("export_onnx",)  # present once the ONNX export issue lands
+_OPTIONAL_COMMAND_MODULES = ("export_onnx",)  # registered only where the module is present
 _GLOBAL_FLAGS = re.compile(r"-v+|-q+|--verbose|--quiet|--log-json")
 
 

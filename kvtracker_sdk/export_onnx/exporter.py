@@ -56,7 +56,9 @@ from kvtracker_sdk.types import HeadSet
 
 __all__ = ["DEFAULT_CHECK_SIZE", "DEFAULT_OPSET", "export_model", "export_onnx"]
 
-DEFAULT_OPSET = 20  # ONNX Runtime >= 1.17; opset 23 maps SDPA to `Attention`, 1.5x slower on CPU here
+# ONNX Runtime >= 1.17; opset 23 maps SDPA to `Attention`, which ran slower on the CPU
+# (benchmarks/README.md#figures-behind-the-code)
+DEFAULT_OPSET = 20
 DEFAULT_CHECK_SIZE = (126, 168)  # (H, W) of the check: small, not square, a 9 x 12 patch grid
 _CHECK_TOLERANCE = 1e-3  # max |ORT - PyTorch| relative to the output's largest magnitude
 _NOISY_LOGGERS = ("torch.onnx", "torch.export", "onnx_ir", "onnxscript")

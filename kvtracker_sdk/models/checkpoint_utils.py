@@ -90,7 +90,8 @@ def _download(repo_id: str, filename: str) -> Path:
         return Path(huggingface_hub.hf_hub_download(repo_id, filename, local_files_only=True))
     except Exception:  # not cached: fall through to the network
         pass
-    # Without this check huggingface_hub retries an unreachable host for ~25 s before failing.
+    # Without this check huggingface_hub retries an unreachable host for a long time before
+    # failing (benchmarks/README.md#figures-behind-the-code).
     if not _hub_reachable(huggingface_hub.constants.ENDPOINT):
         raise WeightsNotFoundError(
             f"{filename} of hub repo {repo_id!r} is not in the local cache and the hub cannot be "

@@ -28,7 +28,7 @@ class MaskResampling(str, enum.Enum):
     """How a mask is resampled to model size."""
 
     BILINEAR_ANY = "bilinear-any"  # float32 bilinear, then > 0 (KV-Tracker)
-    NEAREST = "nearest"  # nearest neighbour (the SDK before issue 11)
+    NEAREST = "nearest"  # nearest neighbour (the SDK's earlier, legacy-area-floor preprocessing)
 
 
 def resize_mask(mask: np.ndarray, size: Size, resampling: MaskResampling) -> np.ndarray:

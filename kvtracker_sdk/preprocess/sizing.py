@@ -105,7 +105,8 @@ def da3_upper_bound_plan(source: Size, side: int, patch_size: int = 14) -> tuple
 def legacy_area_floor_plan(
     source: Size, side: int, patch_size: int = 14
 ) -> tuple[ResizeStep, ...]:
-    """The SDK's sizing before issue 11: floor each side to the patch within d² pixels."""
+    """The SDK's earlier sizing, kept for maps saved with it: floor each side to the patch
+    within d² pixels."""
     height, width = source
     _check_size(height, width, side, patch_size)
     scale = math.sqrt(side * side / (height * width))

@@ -4,7 +4,8 @@ Pi3 and Depth Anything 3 model a pinhole camera; a distorted frame (TUM fr1/fr2:
 bends straight lines the network has learnt to be straight. ``Undistorter`` keeps the image size
 and K (``cv2.initUndistortRectifyMap`` with ``newCameraMatrix = K``), so the undistorted frame's
 intrinsics are ``camera.undistorted()`` and pixels outside the lens's coverage are black.
-Building the maps costs ~10 ms at 640x480; each frame then costs one ``cv2.remap`` (~1 ms).
+Building the maps is the costly part and happens once; each frame then costs one ``cv2.remap``
+(figures: ``benchmarks/README.md#figures-behind-the-code``).
 OpenCV is imported on first use so that ``import kvtracker_sdk`` stays cheap.
 """
 

@@ -203,28 +203,12 @@ def run_frames(
                 break
             if before_frame is not None and frame.error is None:
                 before_frame(index, frame)
-            try:
-                if frame.error is not None:
-                    raise frame.error
-                result = tracker.push_frame(
-                    frame.image, timestamp=frame.timestamp, mask=frame.mask, bbox=frame.bbox,
-                    depth=frame.depth, depth_scale=frame.depth_scale,
-                )
-            except InputError as error:  # the tracker and its map are untouched
-                stamp = frame.timestamp if math.isfinite(frame.timestamp) else None
-                record.bad_frames.append(BadFrame(index, stamp, str(error)))
-                if on_bad_frame is BadFramePolicy.STOP:
-                    record.failure = error
+            result = _push(tracker, index, frame, record)
+            if result is None:  # a bad frame, recorded: STOP made it the run's failure
+                if record.failure is not None:
                     break
-                _log.warning("bad frame skipped", position=index, error=str(error))
                 continue
-            record.results.append(result)
-            for stage, value in result.timings_ms.items():
-                record.add_sample(stage, value)
-            if after_frame is not None:
-                sink_start = time.perf_counter()
-                after_frame(index, frame, result)
-                record.add_sample("sink", (time.perf_counter() - sink_start) * 1e3)
+            _record_result(record, index, frame, result, after_frame)
             if progress is not None:
                 progress.update(result, tracker.map_status.num_keyframes)
             if stop.requested:
@@ -246,6 +230,45 @@ def run_frames(
         tracker.wait_for_map(timeout=None)  # an asynchronous rebuild still running belongs in the map
     record.num_keyframes = tracker.map_status.num_keyframes
     return record
+
+
+def _push(
+    tracker: Tracker, index: int, frame: InputFrame, record: RunRecord
+) -> FrameResult | None:
+    """The tracker's result for ``frame``, or None for a bad frame: recorded in ``record`` (and,
+    under ``BadFramePolicy.STOP``, set as its failure); the tracker and its map are untouched."""
+    try:
+        if frame.error is not None:
+            raise frame.error
+        return tracker.push_frame(
+            frame.image, timestamp=frame.timestamp, mask=frame.mask, bbox=frame.bbox,
+            depth=frame.depth, depth_scale=frame.depth_scale,
+        )  # fmt: skip
+    except InputError as error:
+        stamp = frame.timestamp if math.isfinite(frame.timestamp) else None
+        record.bad_frames.append(BadFrame(index, stamp, str(error)))
+        if record.bad_frame_policy is BadFramePolicy.STOP:
+            record.failure = error
+        else:
+            _log.warning("bad frame skipped", position=index, error=str(error))
+        return None
+
+
+def _record_result(
+    record: RunRecord,
+    index: int,
+    frame: InputFrame,
+    result: FrameResult,
+    after_frame: FrameHook | None,
+) -> None:
+    """Keep ``result`` and its stage timings; run the sink's hook, timed as stage ``sink``."""
+    record.results.append(result)
+    for stage, value in result.timings_ms.items():
+        record.add_sample(stage, value)
+    if after_frame is not None:
+        sink_start = time.perf_counter()
+        after_frame(index, frame, result)
+        record.add_sample("sink", (time.perf_counter() - sink_start) * 1e3)
 
 
 class _GracefulStop:

@@ -40,6 +40,7 @@ __all__ = ["DA3BackboneConfig", "DA3CameraEncoderConfig", "DA3Config", "DA3HeadC
 
 # out_layers are not visible in the weights; the official configs use these per depth
 _OFFICIAL_OUT_LAYERS = {12: (5, 7, 9, 11), 24: (11, 15, 19, 23), 40: (19, 27, 33, 39)}
+_VIT = "backbone.pretrained."  # the backbone's key prefix in a DA3 checkpoint
 
 
 _Section = ArchitectureConfig  # every section: frozen, unknown keys refused, ConfigError
@@ -203,32 +204,14 @@ class DA3Config(_Section):
         shapes = StateDictShapes(state_dict, "DA3")
         shape, count = shapes.shape, shapes.count
 
-        vit = "backbone.pretrained."
+        vit = _VIT
         dim = shape(vit + "cls_token")[-1]
         depth = count(vit + "blocks.")
-        with_qk_norm = [
-            i for i in range(depth) if f"{vit}blocks.{i}.attn.q_norm.weight" in state_dict
-        ]
-        if not with_qk_norm:
-            raise CheckpointMismatchError(
-                "cannot infer a DA3 config: no backbone block has qk-norm (not a DA3 checkpoint?)",
-                missing=[f"{vit}blocks.{depth - 1}.attn.q_norm.weight"],
-            )
-        alt_start = with_qk_norm[0]
+        alt_start = _first_qk_norm_block(state_dict, depth)
         head_dim = shape(f"{vit}blocks.{alt_start}.attn.q_norm.weight")[0]
         swiglu = f"{vit}blocks.0.mlp.w12.weight" in state_dict
-        if swiglu:
-            hidden = shape(f"{vit}blocks.0.mlp.w12.weight")[0] // 2
-            mlp_ratio = 4.0 if swiglu_hidden_dim(4 * dim) == hidden else 1.5 * hidden / dim
-        else:
-            mlp_ratio = shape(f"{vit}blocks.0.mlp.fc1.weight")[0] / dim
-        global_blocks = [i for i in range(alt_start, depth) if i % 2 == 1]
-        layers = out_layers or _OFFICIAL_OUT_LAYERS.get(depth) or tuple(global_blocks[-4:])
-        if len(layers) != 4:
-            raise CheckpointMismatchError(
-                f"cannot infer out_layers for a {depth}-block backbone with global blocks {global_blocks}; "
-                "pass out_layers=(...) (four block indices) or a config"
-            )
+        mlp_ratio = _mlp_ratio(shapes, dim, swiglu)
+        layers = _out_layers(depth, alt_start, out_layers)
         try:
             return cls(
                 patch_size=shape(vit + "patch_embed.proj.weight")[-1],
@@ -256,3 +239,41 @@ class DA3Config(_Section):
             raise CheckpointMismatchError(
                 f"the checkpoint's shapes give an invalid DA3 config: {exc}"
             ) from exc
+
+
+
+def _first_qk_norm_block(state_dict: Mapping[str, torch.Tensor], depth: int) -> int:
+    """``alt_start``: the first backbone block with qk-norm (every later one has it too)."""
+    with_qk_norm = [
+        i for i in range(depth) if f"{_VIT}blocks.{i}.attn.q_norm.weight" in state_dict
+    ]
+    if not with_qk_norm:
+        raise CheckpointMismatchError(
+            "cannot infer a DA3 config: no backbone block has qk-norm (not a DA3 checkpoint?)",
+            missing=[f"{_VIT}blocks.{depth - 1}.attn.q_norm.weight"],
+        )
+    return with_qk_norm[0]
+
+
+def _mlp_ratio(shapes: StateDictShapes, dim: int, swiglu: bool) -> float:
+    """The backbone's MLP ratio from the first block's hidden width; a SwiGLU block whose width
+    is the official rounding of ``4 * dim`` reads as ratio 4."""
+    if swiglu:
+        hidden = shapes.shape(f"{_VIT}blocks.0.mlp.w12.weight")[0] // 2
+        return 4.0 if swiglu_hidden_dim(4 * dim) == hidden else 1.5 * hidden / dim
+    return shapes.shape(f"{_VIT}blocks.0.mlp.fc1.weight")[0] / dim
+
+
+def _out_layers(
+    depth: int, alt_start: int, out_layers: tuple[int, int, int, int] | None
+) -> tuple[int, ...]:
+    """The blocks feeding the heads: as given, else the official choice for ``depth``, else the
+    last four global blocks; CheckpointMismatchError when that is not four."""
+    global_blocks = [i for i in range(alt_start, depth) if i % 2 == 1]
+    layers = out_layers or _OFFICIAL_OUT_LAYERS.get(depth) or tuple(global_blocks[-4:])
+    if len(layers) != 4:
+        raise CheckpointMismatchError(
+            f"cannot infer out_layers for a {depth}-block backbone with global blocks {global_blocks}; "
+            "pass out_layers=(...) (four block indices) or a config"
+        )
+    return layers

@@ -243,7 +243,8 @@ class Attention(nn.Module):
 
         The attention is spelled out (softmax(q kᵀ / sqrt(d)) v) rather than
         ``F.scaled_dot_product_attention``: ONNX Runtime then folds the key transpose into its
-        MatMul, 15% faster at 32 keyframes than the exporter's decomposition of SDPA.
+        MatMul, faster than the exporter's decomposition of SDPA
+        (``benchmarks/README.md#figures-behind-the-code``).
         """
         q, k, v = self.project(x, rope)  # [1, heads, L, head_dim] each
         keys = torch.cat((past_key[:, :, :past_length], k), dim=2)  # [1, heads, past + L, d]

@@ -5,16 +5,15 @@
 
 - ``"sdpa"`` (default): ``F.scaled_dot_product_attention``, PyTorch's fused CPU flash kernel. Its
   scores are fp32. On CPUs without AMX its bf16 products run at about the fp32 matrix-product
-  rate: measured 71-82 GFLOP/s against 420-450 GFLOP/s of a bf16 GEMM and 102-108 of an fp32
-  one on one core (``benchmarks/attention_kernels.py``).
+  rate, far below a bf16 GEMM's (``benchmarks/attention_kernels.py``; figures:
+  ``benchmarks/README.md#figures-behind-the-code``).
 - ``"products"``: two batched matrix products at the full bf16 GEMM rate, 64 queries at a time
   (the scores of a chunk stay in cache): scores in the operands' dtype, softmax accumulated in
   fp32 (max-subtracted, so it cannot overflow), probabilities in the operands' dtype for P·V.
   In bf16 the scores are rounded to bf16 before the softmax, which the flash kernel does not do:
-  the attention output deviates ~5x more from float64 (2e-2 vs 4e-3 on unit-variance inputs);
-  the runtimes benchmark measures what that does to poses. 1.6-2.3x faster than ``"sdpa"`` for
-  DA3-Small's 6 heads up to 32 keyframes; slower for long caches, where the scores of a chunk no
-  longer fit the caches.
+  the attention output deviates more from float64; the runtimes benchmark measures what that
+  does to poses. Faster than ``"sdpa"`` for DA3-Small's 6 heads on short caches; slower for long
+  caches, where the scores of a chunk no longer fit the caches (figures: the same section).
 
 ``use_cached_kernel(model, name)`` sets it on every attention layer of a model.
 """

@@ -4,7 +4,8 @@ The official Pi3 and DA3 pipelines run bf16 as ``torch.autocast(bfloat16)`` over
 every matrix product (``linear``, ``conv2d``, ``scaled_dot_product_attention``) gets bf16 operands,
 while the residual stream stays fp32 (a bf16 branch output times an fp32 LayerScale, added to an
 fp32 stream, is fp32) and the norms, LayerScales, position embeddings and register/camera tokens
-keep fp32 parameters. Keeping the residual stream itself in bf16 deviates 1.2–2.7× more from fp32.
+keep fp32 parameters. Keeping the residual stream itself in bf16 deviates several times more from
+fp32 (``benchmarks/README.md#figures-behind-the-code``).
 
 We run the same recipe, with one change that does not alter a single value: the weights and biases
 of the ``Linear``/``Conv2d`` layers are cast to bf16 once (``cast_matmul_weights``), so autocast finds
