@@ -413,7 +413,7 @@ def environment() -> dict[str, Any]:
                 break
     except OSError:
         pass
-    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain")),
+    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
             "sdk_version": kvtracker_sdk.__version__, "python": platform.python_version(),
             "torch": torch.__version__, "numpy": np.__version__, "cpu": cpu,
             "machine": platform.machine(), "torch_threads": torch.get_num_threads(),
