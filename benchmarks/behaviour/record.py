@@ -55,9 +55,11 @@ from __future__ import annotations
 
 import os
 
-# one thread everywhere, before torch or OpenMP load: results must not depend on scheduling
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ[_variable] = "1"
+if __name__ == "__main__":  # not when imported (by a test): the env of that process is its own
+    # one thread everywhere, before numpy, torch or OpenMP load: results must not depend on
+    # how work is split between threads
+    for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[_variable] = "1"
 
 import argparse  # noqa: E402
 import hashlib  # noqa: E402
@@ -413,7 +415,8 @@ def environment() -> dict[str, Any]:
                 break
     except OSError:
         pass
-    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no")),
+    dirty = git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": git("rev-parse", "HEAD"), "dirty": bool(dirty),
             "sdk_version": kvtracker_sdk.__version__, "python": platform.python_version(),
             "torch": torch.__version__, "numpy": np.__version__, "cpu": cpu,
             "machine": platform.machine(), "torch_threads": torch.get_num_threads(),
