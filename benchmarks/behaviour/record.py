@@ -100,8 +100,9 @@ IGNORED_FIELDS = frozenset({
 # * ``tracker_config`` (the saved TrackerConfig, a JSON string today; structured JSON in a new
 #   version) and ``mode`` (stored twice today): the config a tracker loading the map reports is
 #   compared field by field instead (``loaded_config``);
-# * ``keyframe_encoding`` and ``tensor_sha256.keyframes.image``: how keyframe images are stored;
-#   the images are compared decoded instead (``keyframe_images``).
+# * ``keyframe_encoding`` (and the checksums ``tensor_sha256.<tensor>`` of the tensors matched by
+#   ``ALLOWED_TENSOR_PREFIXES``): how keyframe images are stored; the images are compared decoded
+#   instead (``keyframe_images``).
 # A new version's *new* field fails until it is named here (or with ``--allow-field NAME``).
 ALLOWED_FIELDS = frozenset({
     "format_version",
@@ -109,11 +110,11 @@ ALLOWED_FIELDS = frozenset({
     "tracker_config",
     "mode",
     "keyframe_encoding",
-    "tensor_sha256.keyframes.image",
 })
 # Header fields holding a JSON object compared entry by entry (``field.entry``).
 FLATTENED_FIELDS = frozenset({"tensor_sha256"})
-# Tensors whose stored form may change (compared decoded, through loading the map).
+# Tensors whose stored form may change, be renamed or be added (``keyframes.image*``): compared
+# decoded, through loading the map.
 ALLOWED_TENSOR_PREFIXES = ("keyframes.image",)
 
 
@@ -472,6 +473,17 @@ def _rows_diff(name: str, base: list[Any], new: list[Any]) -> list[str]:
     return problems
 
 
+def _dotted(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            out.update(_dotted(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
 def _map_diff(run: str, base: dict[str, Any], new: dict[str, Any], allowed: frozenset[str],
               notes: list[str]) -> list[str]:
     problems: list[str] = []
@@ -486,11 +498,18 @@ def _map_diff(run: str, base: dict[str, Any], new: dict[str, Any], allowed: froz
         a, b = base["fields"].get(key, "<absent>"), new["fields"].get(key, "<absent>")
         if a != b:
             where = f"{run} map field {key}: {a!r} -> {b!r}"
-            (notes if key in allowed else problems).append(where)
-    for part in ("loaded_config", "keyframe_images"):
-        if base[part] != new[part]:
-            problems.append(f"{run} map {part}: differs ({json.dumps(base[part])[:300]} -> "
-                            f"{json.dumps(new[part])[:300]})")
+            stored_image = key.startswith(tuple(f"tensor_sha256.{prefix}"
+                                                for prefix in ALLOWED_TENSOR_PREFIXES))
+            (notes if key in allowed or stored_image else problems).append(where)
+    a_config, b_config = _dotted(base["loaded_config"]), _dotted(new["loaded_config"])
+    for key in sorted(set(a_config) | set(b_config)):
+        if key not in a_config:  # a new option; the runs above show whether its default acts
+            notes.append(f"{run} loaded config: new field {key} = {b_config[key]!r}")
+        elif a_config[key] != b_config.get(key, "<absent>"):
+            problems.append(f"{run} loaded config {key}: {a_config[key]!r} -> "
+                            f"{b_config.get(key, '<absent>')!r}")
+    problems += _rows_diff(f"{run} map keyframe_images", base["keyframe_images"],
+                           new["keyframe_images"])
     if base["file_bytes"] != new["file_bytes"]:
         notes.append(f"{run} map file: {base['file_bytes']} -> {new['file_bytes']} bytes")
     return problems

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,10 +23,10 @@ def copy(tmp_path: Path) -> Path:
     return out
 
 
-def _edit_map(folder: Path, run: str, edit: object) -> None:
+def _edit_map(folder: Path, run: str, edit: Callable[[dict[str, Any]], object]) -> None:
     path = folder / f"{run}.json"
     summary = json.loads(path.read_text())
-    edit(summary["map"])  # type: ignore[operator]
+    edit(summary["map"])
     path.write_text(json.dumps(summary))
 
 
@@ -49,13 +51,13 @@ def test_a_changed_reason_is_caught(copy: Path) -> None:
 
 
 def test_map_differences_outside_the_allow_list_are_caught(copy: Path) -> None:
-    def tensor(m: dict) -> None:
+    def tensor(m: dict[str, Any]) -> None:
         m["tensors"]["layers.0.key"]["sha256"] = "0" * 64
 
-    def new_field(m: dict) -> None:
+    def new_field(m: dict[str, Any]) -> None:
         m["fields"]["something_new"] = 1
 
-    def image(m: dict) -> None:
+    def image(m: dict[str, Any]) -> None:
         m["keyframe_images"][1]["image"][2] = "0" * 64
 
     for run, edit in [("pi3_tum", tensor), ("da3_tum", new_field), ("pi3_tum_int8", image)]:
@@ -66,7 +68,7 @@ def test_map_differences_outside_the_allow_list_are_caught(copy: Path) -> None:
 
 
 def test_the_allow_list_format_version_config_encoding_and_stored_images(copy: Path) -> None:
-    def new_format(m: dict) -> None:
+    def new_format(m: dict[str, Any]) -> None:
         m["fields"]["format_version"] = 99
         m["fields"]["tracker_config"] = {"structured": True}
         m["fields"]["keyframe_encoding"] = "png"
@@ -75,3 +77,10 @@ def test_the_allow_list_format_version_config_encoding_and_stored_images(copy: P
 
     _edit_map(copy, "pi3_tum_int8", new_format)
     assert compare(REFERENCE, copy) == 0
+
+
+def test_a_new_config_option_is_allowed_a_changed_one_is_not(copy: Path) -> None:
+    _edit_map(copy, "scene_sync", lambda m: m["loaded_config"]["relocalization"].update(new=1))
+    assert compare(REFERENCE, copy) == 0
+    _edit_map(copy, "scene_sync", lambda m: m["loaded_config"].update(resolution=224))
+    assert compare(REFERENCE, copy) == 1
