@@ -1,6 +1,7 @@
 """``benchmarks/behaviour/record.py``'s comparison on the committed reference: a recording equals
 itself, and a changed pose, state, map tensor or header field is caught, except the header fields
-of its allow-list (recording itself is not run here: ~16 CPU-s)."""
+of its allow-list (recording itself is not run here: it takes the
+CPU-seconds its environment.json names)."""
 
 from __future__ import annotations
 
