@@ -60,6 +60,9 @@ class StateReason(str, enum.Enum):
     RESET = "RESET"  # reset() was called
     TIMEOUT = "TIMEOUT"  # relocalisation timed out and the policy acted
     NEW_MAP = "NEW_MAP"  # relocalisation timed out and a new map was started
+    # the map after a timeout started from a frame below the lost map's confidence floor: allowed
+    # once `FLOOR_RELAXES_AFTER` attempts in a row fell short (a place the network is less sure of)
+    RELAXED_FLOOR = "RELAXED_FLOOR"
     # object mode: a loaded object map's object was not found in the whole frame for
     # `object.search_frames` frames; give its mask or box with a frame that shows it
     OBJECT_NOT_FOUND = "OBJECT_NOT_FOUND"

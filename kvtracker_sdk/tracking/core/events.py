@@ -106,7 +106,8 @@ class KeyframeRejectedEvent:
     """A candidate keyframe was rejected and the previous map (and cache) kept.
 
     Also sent for a new map's first frame (after a relocalisation timeout) that did not reach the
-    absolute confidence floor: then ``reference_confidence`` is that floor and ``ratio`` is 1.
+    absolute confidence floor: then ``reference_confidence`` is that floor (relaxed once after a few
+    such rejections in a row: docs/states.md) and ``ratio`` is 1.
     """
 
     keyframe_id: int  # the id the candidate would have had (never reused)

@@ -9,8 +9,9 @@ thread-safe on its own: the ``Tracker``'s lock guards every call.
 Failures (``failures``): a tracking pass that raises or returns non-finite numbers gives a step
 with ``error`` set and counts as a low-confidence frame; a failed mapping pass keeps the map. Both
 are told once through ``on_backend_failed``. After a relocalisation timeout drops the map, the next
-map must reach an absolute confidence floor, and its installation tells the app that the world
-frame changed (``on_world_frame_changed``).
+map must reach an absolute confidence floor (relaxed once after repeated rejections: reason
+``RELAXED_FLOOR``), and its installation tells the app that the world frame changed
+(``on_world_frame_changed``).
 """
 
 from __future__ import annotations
@@ -278,13 +279,17 @@ class FrameLoop:
             return outcome
         if outcome.request.previous is None:
             self._world_change = None  # told (if it was pending): the new world frame is open
+        # a new map after a timeout that only the relaxed floor let in (the monitor's reference
+        # is still the lost map's: the floor ``_react`` set): the app is told
+        relaxed = outcome.request.min_confidence is not None and (
+            outcome.candidate_confidence < self.monitor.threshold * self.monitor.reference)
         self.monitor.set_reference(outcome.new_map.keyframes[0].mean_confidence)
         if self.keeper.map is not None:
             for change in self.aligner.after_rebuild(outcome, self.keeper.map):
                 self.apply_world(change, index)
         if self.state is _S.MAPPING:
             reason = _R.NEW_MAP if outcome.request.cause == "new_map" else _R.BOOTSTRAP
-            self.change(_S.TRACKING, reason, index)
+            self.change(_S.TRACKING, _R.RELAXED_FLOOR if relaxed else reason, index)
         return outcome
 
     def install_loaded(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:

@@ -27,7 +27,7 @@ TRANSITIONS: MappingProxyType[tuple[TrackingState, TrackingState], frozenset[Sta
         {
             # bootstrap: the first frame becomes keyframe 0 and the first map is built
             (_S.INIT, _S.MAPPING): frozenset({_R.BOOTSTRAP}),
-            (_S.MAPPING, _S.TRACKING): frozenset({_R.BOOTSTRAP, _R.NEW_MAP}),
+            (_S.MAPPING, _S.TRACKING): frozenset({_R.BOOTSTRAP, _R.NEW_MAP, _R.RELAXED_FLOOR}),
             # confidence-driven loss and recovery
             (_S.TRACKING, _S.RELOCALIZING): frozenset({_R.LOW_CONFIDENCE, _R.MAP_LOADED}),
             (_S.RELOCALIZING, _S.TRACKING): frozenset({_R.RELOCALIZED}),

@@ -26,6 +26,9 @@ which backs off exponentially while failures repeat (``failures.backoff_frames``
 After a map is lost for good (a relocalisation-timeout policy), the next map must start from a
 frame that is confident in absolute terms: ``drop(floor=...)`` makes every new bootstrap's keyframe
 0 reach that mean confidence (measured against the lost map's reference, not against itself).
+After ``FLOOR_RELAXES_AFTER`` such bootstraps in a row were rejected, the floor relaxes once, to
+``confidence_threshold`` x the floor: a place where the network is steadily less confident than
+where the lost map was made would otherwise never get a map (docs/states.md states the bound).
 """
 
 from __future__ import annotations
@@ -58,10 +61,14 @@ from kvtracker_sdk.tracking.world.world_alignment import WorldChange, transform_
 from kvtracker_sdk.types import MapStatus
 from kvtracker_sdk.world import ScaleSource
 
-__all__ = ["MapKeeper"]
+__all__ = ["FLOOR_RELAXES_AFTER", "MapKeeper"]
 
 _log = get_logger(__name__)
 _NEVER = -(10**12)
+# Rejected bootstraps in a row (after a timeout) before the confidence floor relaxes. Small: each
+# costs `rejection.retry_after_frames` frames without poses; a few so that one unlucky frame
+# right after the timeout does not relax the floor at once.
+FLOOR_RELAXES_AFTER = 3
 
 
 @dataclass(frozen=True)
@@ -106,6 +113,7 @@ class MapKeeper:
         # world transforms applied since the pending rebuild started (its map is in the old world)
         self._pending_world: Sim3 | None = None
         self._consecutive_failures = 0
+        self._floor_rejections = 0  # bootstraps in a row below the floor (relaxes it)
         self._count_from_next = False  # a loaded map: the interval counts from its first frame
 
     @property
@@ -317,6 +325,14 @@ class MapKeeper:
         self._in_flight = (proposal,)
         return self._start(backend, kf_map, keep, proposal.frame, proposal.index, "keyframe", evicted)
 
+    def _bootstrap_floor(self) -> float | None:
+        """The mean confidence a new map's keyframe 0 must reach now (None: any frame): the lost
+        map's floor, relaxed once by ``confidence_threshold`` after ``FLOOR_RELAXES_AFTER``
+        rejections in a row. Never lower: frames of a deep loss stay below it."""
+        if self._floor is None or self._floor_rejections < FLOOR_RELAXES_AFTER:
+            return self._floor
+        return self._floor * self._config.relocalization.confidence_threshold
+
     def _start(
         self,
         backend: Backend,
@@ -333,7 +349,7 @@ class MapKeeper:
         )
         self._next_keyframe_id += 1
         self._last_proposed_frame = max(self._last_proposed_frame, index)  # bootstraps count too
-        floor = self._floor if previous is None else None
+        floor = self._bootstrap_floor() if previous is None else None
         # a new world takes its scale from a depth frame if it has one; a world metric by depth
         # keeps taking it from the sensor (no drift through rebuilds)
         anchor = previous is None or previous.world.scale_source is ScaleSource.DEPTH
@@ -393,6 +409,8 @@ class MapKeeper:
         else:
             # timed from the candidate's frame (not from when the worker finished): deterministic
             self._retry_frame = candidate_frame + self._config.rejection.retry_after_frames
+            if outcome.request.min_confidence is not None:  # a bootstrap below the floor
+                self._floor_rejections += 1
             self._last_proposed_frame = self._last_accepted_frame
         self._start_waiting(backend)
         return outcome
