@@ -20,7 +20,7 @@ from kvtracker_sdk.backends.base import TrackResult
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, decode_frame_index, orbit
 from kvtracker_sdk.cache.kv_cache import KVCache
-from kvtracker_sdk.tracking.map_keeper import FLOOR_RELAXES_AFTER
+from kvtracker_sdk.tracking.mapping.map_keeper import FLOOR_RELAXES_AFTER
 from kvtracker_sdk.types import HeadSet
 from tests.tracking.sim_session import Session, drive, make_tracker
 
