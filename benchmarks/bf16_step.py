@@ -76,7 +76,7 @@ def _worker(model_name: str, size: tuple[int, int], keyframes: int, threads: int
 
 
 def _cache_layout(model: Any) -> Any:
-    """The model's cache layout in either tree: the family registry (issue 13 on) or the older
+    """The model's cache layout in either tree: the family registry (current) or the older
     per-family adapters."""
     try:
         from kvtracker_sdk.models.registry import family_of

@@ -1,4 +1,4 @@
-"""Compact maps (issue 16): size, tracking step and accuracy proxy of cache variants, side by side.
+"""Compact maps: size, tracking step and accuracy proxy of cache variants, side by side.
 
 For each model (Pi3 ``mid`` at d = 308 and DA3-Small at d = 224, random weights: speed does not
 depend on values; frames sized as the preprocessing sizes a 640x480 frame) and each number of

@@ -136,7 +136,7 @@ def read_file(path: Path, buffer: bytearray) -> int:
 
 
 def mmap_load(path: Path) -> KeyframeMap:
-    """The loader before issue 12 (reference): safetensors memory map, sha256, copy into a cache.
+    """The earlier loader (reference): safetensors memory map, sha256, copy into a cache.
 
     Kept here only to measure the one-descriptor loader against it in the same run; a file
     truncated underneath it raises SIGBUS (``tests/io/test_map_changed_while_loading.py``).

@@ -1,4 +1,4 @@
-"""Pruned maps and incremental keyframes (issue 16 part B): size, step time, insertion time,
+"""Pruned maps and incremental keyframes: size, step time, insertion time,
 and an accuracy proxy.
 
 Two parts, both printed as Markdown tables and written to ``benchmarks/results/<--name>.json``:
