@@ -58,6 +58,7 @@ from kvtracker_sdk.tracking.live.live_intake import (
     ResultCallback,
 )
 from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop
+from kvtracker_sdk.tracking.loop.states import TrackingEvent
 from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
 from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
@@ -313,8 +314,7 @@ class Tracker(EventSource):
             self._last_timestamp = None
             self._regions.reset()
             self._searched = 0
-            if self.state is not _S.INIT:
-                self._loop.change(_S.INIT, _R.RESET, None)
+            self._loop.fire(TrackingEvent.RESET, None)
 
     def _install_loaded_map(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:
         """Persistence seam: install a saved map and relocalise against it (RELOCALIZING,
@@ -582,7 +582,7 @@ class Tracker(EventSource):
         ``object.search_frames``-th sets the reason OBJECT_NOT_FOUND (the app must point at it)."""
         self._searched = self._searched + 1 if missed else 0
         if self._searched == self._config.object.search_frames and self.state is _S.RELOCALIZING:
-            self._loop.change(_S.RELOCALIZING, _R.OBJECT_NOT_FOUND, index)
+            self._loop.fire(TrackingEvent.OBJECT_NOT_FOUND, index)
             _log.warning("the loaded map's object was not found in the whole frame",
                          frames=self._searched, hint=OBJECT_NOT_FOUND_HINT)
 

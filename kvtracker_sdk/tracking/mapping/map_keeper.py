@@ -6,6 +6,10 @@ rebuild (inline or on the mapping worker, see ``mapper``), and on ``collect`` in
 map with one reference assignment (the atomic swap) or notes a rejection. The ``Tracker`` turns
 what ``collect`` returns into state changes and events.
 
+The keeper's cycle of mapping passes (idle, building, a candidate waiting, failed with a
+backoff) is named in ``rebuild_cycle``: ``phase`` reads it from what the keeper holds, and every
+change is checked against that table.
+
 Counters that outlive a map (keyframe ids, generations) never go back, so an id or a generation
 seen by an app always names one keyframe or one map.
 
@@ -53,6 +57,7 @@ from kvtracker_sdk.tracking.mapping.map_builder import (
 )
 from kvtracker_sdk.tracking.mapping.map_insertion import rebuild_or_insert
 from kvtracker_sdk.tracking.mapping.mapper import Mapper
+from kvtracker_sdk.tracking.mapping.rebuild_cycle import RebuildEvent, RebuildPhase, check_move
 from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
 from kvtracker_sdk.tracking.world.world_alignment import WorldChange, transform_map
 from kvtracker_sdk.types import MapStatus
@@ -107,6 +112,15 @@ class MapKeeper:
         self._pending_world: Sim3 | None = None
         self._consecutive_failures = 0
         self._count_from_next = False  # a loaded map: the interval counts from its first frame
+
+    @property
+    def phase(self) -> RebuildPhase:
+        """Where the rebuild cycle is (``rebuild_cycle``), read from what the keeper holds."""
+        if self._mapper.pending:
+            if self._waiting is not None:
+                return RebuildPhase.CANDIDATE_WAITING
+            return RebuildPhase.BUILDING
+        return RebuildPhase.FAILED if self._consecutive_failures > 0 else RebuildPhase.IDLE
 
     @property
     def rebuilding(self) -> bool:
@@ -174,6 +188,7 @@ class MapKeeper:
     def drop(self, *, floor: float | None = None) -> None:
         """Forget the map and any rebuild in flight (its result will be ignored). ``floor``: the
         absolute mean confidence the next map's keyframe 0 must reach (None: any frame)."""
+        before = self.phase
         self._mapper.discard()
         self._taken = self._started
         self._pending_world = None
@@ -181,6 +196,7 @@ class MapKeeper:
         self._rebuild_foreign = False
         self._floor = floor
         self._clear_counters()
+        check_move(before, RebuildEvent.DROP, self.phase)
 
     def convert_cache(self, dtype: str, device: str, *, dequantize: bool = False) -> None:
         """Re-express the map's K/V in another backend's dtype and device (a backend swap between
@@ -292,13 +308,17 @@ class MapKeeper:
             )
         proposal = _Proposal(frame, index, np.asarray(T_world_cam, dtype=np.float64))
         self._last_proposed_frame = index
-        if not self._mapper.pending:
+        before = self.phase
+        if before in (RebuildPhase.IDLE, RebuildPhase.FAILED):
             return self._start_keyframe(backend, proposal)
+        event = RebuildEvent.DEFER
         if self._waiting is not None:
+            event = RebuildEvent.REPLACE
             self._deferred_replaced += 1
             _log.warning("keyframe candidate replaced while waiting for a slow rebuild",
                          replaced_frame=self._waiting.index, frame_index=index)
         self._waiting = proposal
+        check_move(before, event, self.phase)
         return None
 
     def start_bootstrap(
@@ -327,6 +347,7 @@ class MapKeeper:
         cause: str,
         evicted: tuple[int, ...] = (),
     ) -> int:
+        before = self.phase
         candidate = KeyframeCandidate(
             self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask,
             frame.preprocessing, frame.depth,
@@ -362,6 +383,7 @@ class MapKeeper:
                 cache_storage=None if storage == "backend" else storage,
             )
         )
+        check_move(before, RebuildEvent.START, self.phase)
         return candidate.keyframe_id
 
     def collect(
@@ -373,12 +395,14 @@ class MapKeeper:
         Returns the outcome (a ``MappingFailure`` if the pass failed: it never raises), or None
         when no rebuild finished within ``timeout`` seconds.
         """
-        request = self._request
+        request, before = self._request, self.phase
         try:
             outcome = self._mapper.take(timeout=timeout)
         except Exception as exc:  # any backend failure: the frame loop must go on
             assert request is not None  # a pending job always has its request
-            return self._failed(backend, request, exc)
+            failure = self._failed(backend, request, exc)
+            check_move(before, RebuildEvent.FAIL, self.phase)
+            return failure
         if outcome is None:
             return None
         outcome = self._into_current_world(outcome)
@@ -395,6 +419,8 @@ class MapKeeper:
             self._retry_frame = candidate_frame + self._config.rejection.retry_after_frames
             self._last_proposed_frame = self._last_accepted_frame
         self._start_waiting(backend)
+        check_move(before, RebuildEvent.ACCEPT if outcome.accepted else RebuildEvent.REJECT,
+                   self.phase)
         return outcome
 
     def _failed(
