@@ -566,10 +566,13 @@ class Tracker(EventSource):
                 self._last_timestamp = frame.timestamp
             timings["total"] = _ms(start)
             result = FrameResult(
-                index, frame.timestamp, self.state, self.reason, step.pose, step.valid,
-                step.confidence, step.keyframe_id, self._loop.snapshot.map_generation, timings,
-                {"rebuilding": self._keeper.rebuilding}, step.error, intrinsics, source,
-                region, T_cam_object, object_frame,
+                frame_index=index, timestamp=frame.timestamp, state=self.state,
+                reason=self.reason, pose=step.pose, pose_valid=step.valid,
+                confidence=step.confidence, keyframe_id=step.keyframe_id,
+                map_generation=self._loop.snapshot.map_generation, timings_ms=timings,
+                extras={"rebuilding": self._keeper.rebuilding}, error=step.error,
+                intrinsics=intrinsics, intrinsics_source=source, region=region,
+                T_cam_object=T_cam_object, object_frame=object_frame,
             )
         _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
                    confidence=step.confidence,

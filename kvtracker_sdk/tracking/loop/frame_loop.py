@@ -39,7 +39,7 @@ from kvtracker_sdk.tracking.core.quality import ConfidenceMonitor, frame_confide
 from kvtracker_sdk.tracking.loop.reporting import WorldFrameChange, failure_event, rebuild_events
 from kvtracker_sdk.tracking.loop.states import TrackingEvent, next_state
 from kvtracker_sdk.tracking.mapping.failures import MappingFailure, track_checked
-from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildCause, RebuildOutcome
 from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper
 from kvtracker_sdk.tracking.world.world_alignment import WorldAligner, WorldChange
 from kvtracker_sdk.types import Pose, StateReason, TrackedPose, TrackerSnapshot, TrackingState
@@ -226,7 +226,7 @@ class FrameLoop:
         a failed pass's backoff (or a rejected new map's wait) is running."""
         self.fire(_E.FRAME_WITHOUT_MAP, index)
         if not self.keeper.rebuilding and self.keeper.may_start(index):
-            cause = "new_map" if self.reason is _R.NEW_MAP else "bootstrap"
+            cause = RebuildCause.NEW_MAP if self.reason is _R.NEW_MAP else RebuildCause.BOOTSTRAP
             self.keeper.start_bootstrap(self.backend, frame, index, cause)
             self.collect(index, timings)
         if self.keeper.map is None:
@@ -282,8 +282,8 @@ class FrameLoop:
             for change in self.aligner.after_rebuild(outcome, self.keeper.map):
                 self.apply_world(change, index)
         if self.state is _S.MAPPING:
-            built = _E.NEW_MAP_BUILT if outcome.request.cause == "new_map" else _E.MAP_BUILT
-            self.fire(built, index)
+            new_map = outcome.request.cause is RebuildCause.NEW_MAP
+            self.fire(_E.NEW_MAP_BUILT if new_map else _E.MAP_BUILT, index)
         return outcome
 
     def install_loaded(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:

@@ -8,6 +8,7 @@ the tracker keeps tracking against the previous map. Installing the outcome is t
 
 from __future__ import annotations
 
+import enum
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -33,7 +34,14 @@ from kvtracker_sdk.tracking.core.quality import masked_mean
 from kvtracker_sdk.tracking.world.metric_scale import DepthScaleFit, fit_depth_scale
 from kvtracker_sdk.world import MapWorld, ScaleSource
 
-__all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map", "compact_cache"]
+__all__ = [
+    "KeyframeCandidate",
+    "RebuildCause",
+    "RebuildOutcome",
+    "RebuildRequest",
+    "build_map",
+    "compact_cache",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +57,18 @@ class KeyframeCandidate:
     sensor_depth: np.ndarray | None = None  # float32 [h, w] metres at model resolution (0 = hole)
 
 
+class RebuildCause(str, enum.Enum):
+    """Why a mapping pass runs; its value is what events (``MapUpdatedEvent.cause``) and logs
+    say."""
+
+    BOOTSTRAP = "bootstrap"  # the first map: the frame becomes keyframe 0
+    KEYFRAME = "keyframe"  # a keyframe candidate joins the current map
+    NEW_MAP = "new_map"  # a new map after a relocalisation timeout (policy ``new_map``)
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass(frozen=True)
 class RebuildRequest:
     """What to map: ``keep`` (keyframe 0 first, world frame) plus ``candidate``.
@@ -61,7 +81,7 @@ class RebuildRequest:
     keep: tuple[Keyframe, ...]
     evicted: tuple[int, ...]
     candidate: KeyframeCandidate
-    cause: str  # "bootstrap", "keyframe", "new_map"
+    cause: RebuildCause
     generation: int  # generation the new map gets if accepted
     # a bootstrap after a lost map: keyframe 0's mean confidence must reach this absolute floor
     min_confidence: float | None = None

@@ -52,6 +52,7 @@ from kvtracker_sdk.tracking.mapping import keyframes as policy
 from kvtracker_sdk.tracking.mapping.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.mapping.map_builder import (
     KeyframeCandidate,
+    RebuildCause,
     RebuildOutcome,
     RebuildRequest,
 )
@@ -61,7 +62,7 @@ from kvtracker_sdk.tracking.mapping.rebuild_cycle import RebuildEvent, RebuildPh
 from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
 from kvtracker_sdk.tracking.world.world_alignment import WorldChange, transform_map
 from kvtracker_sdk.types import MapStatus
-from kvtracker_sdk.world import ScaleSource
+from kvtracker_sdk.world import MapWorld, ScaleSource
 
 __all__ = ["MapKeeper"]
 
@@ -128,25 +129,20 @@ class MapKeeper:
         return self._mapper.pending
 
     def status(self) -> MapStatus:
-        kf_map, rebuilding = self.map, self._mapper.pending
-        failing = self._consecutive_failures > 0
-        extra = {
-            "keyframe_waiting": self._waiting is not None,
-            "deferred_replaced": self._deferred_replaced,
-            "failed_passes": self._failed_passes,
-            "last_error": self._last_error,
-            "retry_at_frame": self._retry_frame if failing else None,
-        }
-        if kf_map is None:  # the generation never goes back, also without a map (after reset)
-            return MapStatus(0, 0, self.generation, rebuilding, **extra)  # type: ignore[arg-type]
+        kf_map, failing = self.map, self._consecutive_failures > 0
+        # the generation never goes back, also without a map (after reset)
         return MapStatus(
-            kf_map.num_keyframes,
-            kf_map.cache.nbytes,
-            kf_map.generation,
-            rebuilding,
-            kf_map.keyframe_ids,
-            **extra,  # type: ignore[arg-type]
-            world=kf_map.world,
+            num_keyframes=0 if kf_map is None else kf_map.num_keyframes,
+            cache_bytes=0 if kf_map is None else kf_map.cache.nbytes,
+            generation=self.generation if kf_map is None else kf_map.generation,
+            rebuilding=self._mapper.pending,
+            keyframe_ids=() if kf_map is None else kf_map.keyframe_ids,
+            keyframe_waiting=self._waiting is not None,
+            deferred_replaced=self._deferred_replaced,
+            failed_passes=self._failed_passes,
+            last_error=self._last_error,
+            retry_at_frame=self._retry_frame if failing else None,
+            world=MapWorld() if kf_map is None else kf_map.world,
         )
 
     # ------------------------------------------------------------------ world transforms
@@ -322,7 +318,7 @@ class MapKeeper:
         return None
 
     def start_bootstrap(
-        self, backend: Backend, frame: PreparedFrame, index: int, cause: str
+        self, backend: Backend, frame: PreparedFrame, index: int, cause: RebuildCause
     ) -> None:
         """Start the first map (or a new one): ``frame`` becomes keyframe 0."""
         self._start(backend, None, (), frame, index, cause)
@@ -335,7 +331,8 @@ class MapKeeper:
         evicted = self._budget.select_evictions(kf_map.keyframes, kf_map.cache.bytes_per_keyframe())
         keep = tuple(kf for kf in kf_map.keyframes if kf.keyframe_id not in evicted)
         self._in_flight = (proposal,)
-        return self._start(backend, kf_map, keep, proposal.frame, proposal.index, "keyframe", evicted)
+        return self._start(backend, kf_map, keep, proposal.frame, proposal.index,
+                           RebuildCause.KEYFRAME, evicted)
 
     def _start(
         self,
@@ -344,7 +341,7 @@ class MapKeeper:
         keep: tuple,
         frame: PreparedFrame,
         index: int,
-        cause: str,
+        cause: RebuildCause,
         evicted: tuple[int, ...] = (),
     ) -> int:
         before = self.phase
@@ -440,7 +437,7 @@ class MapKeeper:
         self._retry_frame = max(self._retry_frame, retry_at)
         # the next frame past the backoff may propose again
         self._in_flight, self._last_proposed_frame = (), self._last_accepted_frame
-        _log.warning("mapping pass failed", cause=request.cause, frame_index=candidate.frame_index,
+        _log.warning("mapping pass failed", cause=request.cause.value, frame_index=candidate.frame_index,
                      error=str(error), retry_at_frame=retry_at)
         self._start_waiting(backend)
         return MappingFailure(request, error, self._consecutive_failures, retry_at)
