@@ -1,12 +1,13 @@
 """Non-blocking intake for a live camera: hand a frame over and return at once.
 
-A camera thread cannot wait for a network step of 50 ms to 5 s. ``LiveIntake`` gives it
+A camera thread cannot wait for a network step (tens of milliseconds to seconds, depending on the
+model and the machine). ``LiveIntake`` gives it
 ``submit(image, timestamp)``, which only stores the frame in a **one-slot mailbox** and returns
 (no lock the worker ever holds, no network, no I/O; a copy of the image unless ``copy=False``):
 the mailbox is a ``deque(maxlen=1)`` and the worker's doorbell a ``queue.SimpleQueue``, both
 single C calls under the GIL, so a worker descheduled by a busy machine cannot hold the camera
-thread up (a ``threading.Condition`` shared with the worker did: p99.9 7-15 ms vs 3-5 ms for a
-bare image copy on a 2-core machine at load 13). One worker
+thread up (a ``threading.Condition`` shared with the worker did; the handover's measured cost
+beside a bare image copy: ``benchmarks/README.md``, ``live.py``). One worker
 thread takes whatever the slot holds — always the newest frame — and runs ``Tracker.push_frame``
 on it. A frame still waiting when a newer one arrives is dropped and counted (the official
 KV-Tracker demo reads its RealSense through a one-slot queue the same way).
