@@ -52,12 +52,7 @@ from kvtracker_sdk.tracking.core.frame_input import (
     to_rgb,
 )
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
-from kvtracker_sdk.tracking.live.live_intake import (
-    ErrorCallback,
-    LiveIntake,
-    LiveStats,
-    ResultCallback,
-)
+from kvtracker_sdk.tracking.live.live_intake import LiveIntake, LiveStats
 from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop, Step
 from kvtracker_sdk.tracking.loop.states import TrackingEvent
 from kvtracker_sdk.tracking.object.frame_mode import (
@@ -435,14 +430,6 @@ class Tracker(EventSource):
                             captured_at=captured_at, color=color, depth=depth,
                             depth_scale=depth_scale, gravity=gravity)
 
-    def on_result(self, callback: ResultCallback) -> None:
-        """``callback(FrameResult)`` after each frame the live worker processed (worker thread)."""
-        self._live().on_result(callback)
-
-    def on_frame_error(self, callback: ErrorCallback) -> None:
-        """``callback(exception)`` when the live worker's ``push_frame`` raised (worker thread)."""
-        self._live().on_error(callback)
-
     def latest(self) -> FrameResult | None:
         """The live worker's most recent result (None before the first)."""
         intake = self._intake
@@ -466,7 +453,7 @@ class Tracker(EventSource):
                 if self._closed:
                     raise StateError("the tracker is closed")
                 if self._intake is None:
-                    self._intake = LiveIntake(self)
+                    self._intake = LiveIntake(self.push_frame, events=self._events)
                 intake = self._intake
         return intake
 

@@ -35,17 +35,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from kvtracker_sdk.errors import KVTrackerError, StateError
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.tracking.core.events import EventBus, EventKind, Subscription
 from kvtracker_sdk.types import FrameResult
-
-if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["LiveIntake", "LiveStats"]
 
@@ -103,8 +101,16 @@ class _Pending:
 class LiveIntake:
     """A one-slot, newest-frame-wins intake in front of ``tracker`` (a worker thread)."""
 
-    def __init__(self, tracker: Tracker, *, copy: bool = True) -> None:
-        self._tracker = tracker
+    def __init__(
+        self, push_frame: Callable[..., FrameResult], *, events: EventBus | None = None,
+        copy: bool = True,
+    ) -> None:
+        """An adapter over a tracker: ``push_frame`` is its ``Tracker.push_frame`` (the intake
+        needs nothing else of it); ``events``: the bus its ``on_result`` / ``on_error``
+        callbacks are registered on (the tracker's, so that ``Tracker.on_result`` and
+        ``unregister`` reach them)."""
+        self._push_frame = push_frame
+        self._events = events if events is not None else EventBus()
         self._copy = bool(copy)
         self._mailbox: deque[_Pending] = deque(maxlen=1)  # append drops the waiting frame
         self._doorbell: queue.SimpleQueue[None] = queue.SimpleQueue()
@@ -116,8 +122,6 @@ class LiveIntake:
         self._latencies: deque[float] = deque(maxlen=_LATENCY_SAMPLES)
         self._delivered_at: deque[float] = deque()
         self._latest: FrameResult | None = None
-        self._on_result: list[ResultCallback] = []
-        self._on_error: list[ErrorCallback] = []
         self._worker = threading.Thread(target=self._run, name="kvtracker-live", daemon=True)
         self._worker.start()
 
@@ -160,13 +164,13 @@ class LiveIntake:
         self._doorbell.put(None)  # never blocks
 
     # ------------------------------------------------------------------ app side
-    def on_result(self, callback: ResultCallback) -> None:
+    def on_result(self, callback: ResultCallback) -> Subscription:
         """Call ``callback(result)`` on the worker thread after every processed frame."""
-        self._on_result.append(callback)
+        return self._events.register(EventKind.RESULT, callback)
 
-    def on_error(self, callback: ErrorCallback) -> None:
+    def on_error(self, callback: ErrorCallback) -> Subscription:
         """Call ``callback(exception)`` on the worker thread when ``push_frame`` raises."""
-        self._on_error.append(callback)
+        return self._events.register(EventKind.FRAME_ERROR, callback)
 
     def latest(self) -> FrameResult | None:
         """The most recent result (None before the first)."""
@@ -247,7 +251,7 @@ class LiveIntake:
 
     def _process(self, item: _Pending) -> tuple[FrameResult | None, BaseException | None]:
         try:
-            result = self._tracker.push_frame(
+            result = self._push_frame(
                 item.image, timestamp=item.timestamp, mask=item.mask, bbox=item.bbox,
                 camera=item.camera, color=item.color, depth=item.depth,
                 depth_scale=item.depth_scale, gravity=item.gravity,
@@ -260,10 +264,8 @@ class LiveIntake:
         return result, None
 
     def _deliver(self, result: FrameResult | None, error: BaseException | None) -> None:
-        callbacks: list[Any] = self._on_result if error is None else self._on_error
-        payload: Any = result if error is None else error
-        for callback in list(callbacks):
-            try:
-                callback(payload)
-            except Exception as exc:  # an app's callback must not stop the intake
-                _log.exception("live_callback_failed", error=repr(exc))
+        # a raising callback is logged by the bus: an app's callback must not stop the intake
+        if error is None:
+            self._events.emit(EventKind.RESULT, result)
+        else:
+            self._events.emit(EventKind.FRAME_ERROR, error)
