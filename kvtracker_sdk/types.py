@@ -275,9 +275,9 @@ def _frozen_mapping(values: Mapping[str, float] | None) -> Mapping[str, float]:
     return MappingProxyType(dict(values or {}))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FrameResult:
-    """What ``Tracker.push_frame`` returns for one frame.
+    """What ``Tracker.push_frame`` returns for one frame (built by keyword only).
 
     ``pose`` is the frame's ``T_world_cam`` in the tracker's world frame; it is None when there is
     no map yet, and flagged by ``pose_valid=False`` while relocalising. ``timings_ms`` holds the

@@ -46,18 +46,21 @@ from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking.core.events import EventBus, EventSource
 from kvtracker_sdk.tracking.core.frame_input import (
     FramePreparer,
+    PreparedFrame,
     check_time_order,
     family_preprocessing,
     to_rgb,
 )
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
-from kvtracker_sdk.tracking.live.live_intake import (
-    ErrorCallback,
-    LiveIntake,
-    LiveStats,
-    ResultCallback,
+from kvtracker_sdk.tracking.live.live_intake import LiveIntake, LiveStats
+from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop, Step
+from kvtracker_sdk.tracking.loop.states import TrackingEvent
+from kvtracker_sdk.tracking.object.frame_mode import (
+    FrameMode,
+    ObjectFrames,
+    ObjectObservation,
+    SceneFrames,
 )
-from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
 from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
@@ -131,10 +134,12 @@ class Tracker(EventSource):
         self._intake: LiveIntake | None = None  # made by the first submit()
         self._intake_lock = threading.Lock()  # never the tracker's lock: submit must not wait
         self._object_mode = cfg.mode is TrackingMode.OBJECT
-        self._regions = RegionPropagator(margin=cfg.object.crop_margin_px,
-                                         models=self._keeper.objects)
-        self._segmenter = _checked_segmenter(segmenter)
-        self._searched = 0  # frames tracked unmasked in a row without finding the object
+        self._mode: FrameMode = SceneFrames(_checked_segmenter(segmenter))
+        if self._object_mode:  # the object's region before and after each step
+            regions = RegionPropagator(margin=cfg.object.crop_margin_px,
+                                       models=self._keeper.objects)
+            self._mode = ObjectFrames(regions, self._mode.segmenter,
+                                      search_frames=cfg.object.search_frames)
         self._depth_undistort = Undistorter()  # depth follows its colour frame's undistortion
 
     @classmethod
@@ -232,19 +237,19 @@ class Tracker(EventSource):
         if not self._object_mode:
             return None
         with self._call():
-            return self._regions.object_frame(self._keeper.map)
+            return self._mode.object_frame(self._keeper.map)
 
     @property
     def object_region(self) -> ObjectRegion | None:
         """Object mode: the region of the last frame (``FrameResult.region``), None before one."""
-        return self._regions.last
+        return self._mode.last_region
 
     def set_segmenter(self, segmenter: Segmenter | None) -> None:
         """Object mode: ask ``segmenter`` for the object's mask in every frame pushed without a
         mask or box, prompting it with the predicted region (None: use the prediction itself)."""
         checked = _checked_segmenter(segmenter)
         with self._call():
-            self._segmenter = checked
+            self._mode.segmenter = checked
 
     # ------------------------------------------------------------------ metric scale
     def set_object_height(self, height_m: float, *, uncertainty_m: float = 0.0) -> None:
@@ -282,7 +287,7 @@ class Tracker(EventSource):
         poses along."""
         if change is not None:
             self._loop.apply_world(change, self._loop.snapshot.frame_index)
-            self._regions.forget_poses()
+            self._mode.forget_poses()
 
     def set_camera(self, camera: Camera | None) -> None:
         """Give (or with None, forget) the input images' intrinsics from the next frame on."""
@@ -311,10 +316,8 @@ class Tracker(EventSource):
             self._loop.drop_map(_R.RESET)
             self._input_size = None
             self._last_timestamp = None
-            self._regions.reset()
-            self._searched = 0
-            if self.state is not _S.INIT:
-                self._loop.change(_S.INIT, _R.RESET, None)
+            self._mode.reset()
+            self._loop.fire(TrackingEvent.RESET, None)
 
     def _install_loaded_map(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:
         """Persistence seam: install a saved map and relocalise against it (RELOCALIZING,
@@ -326,8 +329,7 @@ class Tracker(EventSource):
                 )
             self._input_size = None
             self._last_timestamp = None
-            self._regions.reset()
-            self._searched = 0
+            self._mode.reset()
             self._loop.install_loaded(kf_map, rebuild=rebuild)
             if not self._keeper.extendable:
                 _log.warning(
@@ -428,14 +430,6 @@ class Tracker(EventSource):
                             captured_at=captured_at, color=color, depth=depth,
                             depth_scale=depth_scale, gravity=gravity)
 
-    def on_result(self, callback: ResultCallback) -> None:
-        """``callback(FrameResult)`` after each frame the live worker processed (worker thread)."""
-        self._live().on_result(callback)
-
-    def on_frame_error(self, callback: ErrorCallback) -> None:
-        """``callback(exception)`` when the live worker's ``push_frame`` raised (worker thread)."""
-        self._live().on_error(callback)
-
     def latest(self) -> FrameResult | None:
         """The live worker's most recent result (None before the first)."""
         intake = self._intake
@@ -459,7 +453,7 @@ class Tracker(EventSource):
                 if self._closed:
                     raise StateError("the tracker is closed")
                 if self._intake is None:
-                    self._intake = LiveIntake(self)
+                    self._intake = LiveIntake(self.push_frame, events=self._events)
                 intake = self._intake
         return intake
 
@@ -471,120 +465,128 @@ class Tracker(EventSource):
     ) -> FrameResult:
         """Track one frame: an HxWx3 array, uint8 (or float in [0, 1]), RGB channel order.
 
-        ``color="bgr"`` takes OpenCV's order (``cv2.imread``, ``cv2.VideoCapture.read``) and
-        converts it; a BGR frame passed as RGB is not detected, it tracks worse. ``timestamp``:
-        seconds on any clock the app chooses (reported unchanged in the result and trajectory
-        files); within a session stamps must not go backwards (``InputError``; ``reset()`` and a
-        loaded map start a new session).
+        ``color="bgr"`` takes OpenCV's order (``cv2.imread``, ``cv2.VideoCapture.read``); a BGR
+        frame passed as RGB is not detected, it tracks worse. ``timestamp``: seconds on any clock
+        (reported unchanged); within a session stamps must not go backwards (``InputError``;
+        ``reset()`` and a loaded map start a new session). ``camera``: this frame's intrinsics
+        (else the session's); the result's ``intrinsics`` are the input image's: given,
+        predicted or estimated (``tracking/core/intrinsics.py``).
 
-        ``mask`` (bool/int [H, W]) or ``bbox`` (x0, y0, x1, y1) select the object in object mode:
-        required with the first frame, optional afterwards (a frame without one is tracked with
-        the region predicted from the map, or the ``Segmenter``'s mask; the result's ``region``
-        and ``T_cam_object`` say where the object is, ``tracking/object/object_region.py``); against a
-        loaded object map, not needed at all (the whole frame is searched until the tracker
-        relocalises; reason ``OBJECT_NOT_FOUND`` if it does not within
-        ``object.search_frames`` frames). The result's ``pose`` is None without a map (INIT, MAPPING) or when the
-        backend failed on this frame (``error``); ``pose_valid`` is False while relocalising or for
-        a low-confidence frame. ``keyframe_id`` is set when the frame became a keyframe in this
-        call (synchronous mapping; with asynchronous mapping the ``on_keyframe`` event reports it
-        later). ``camera`` gives this frame's intrinsics (else the session's); the result's
-        ``intrinsics`` are the input image's: given, predicted or estimated
-        (``tracking/core/intrinsics.py``).
+        Object mode (``tracking/object/frame_mode.py``): ``mask`` (bool/int [H, W]) or ``bbox``
+        (x0, y0, x1, y1) select the object, required with the first frame, optional afterwards
+        (the region predicted from the map, or the ``Segmenter``'s mask, is used; the result's
+        ``region`` and ``T_cam_object`` say where the object is); against a loaded object map
+        not needed at all (the whole frame is searched; reason ``OBJECT_NOT_FOUND`` after
+        ``object.search_frames`` frames in vain).
 
-        ``depth``: a depth image registered to ``image`` (same H, W; float metres, or integer raw
-        units with ``depth_scale`` metres per unit; 0 = no depth): keyframes with depth make the
-        world metric (``tracking/world/world_alignment.py``). ``gravity``: the direction of gravity in
-        this frame's camera (3 numbers, OpenCV axes, pointing *down*, any length: a level camera
-        reads about (0, 9.81, 0); an accelerometer at rest measures the opposite, pass its
-        negative); with readings the world's z axis is turned up. Either may be given on some
-        frames only (gravity once, with the first frame, is enough to level the world).
+        ``depth``: a depth image registered to ``image`` (same H, W; float metres, or integer
+        units with ``depth_scale`` metres per unit; 0 = none): keyframes with depth make the world
+        metric (``tracking/world/world_alignment.py``). ``gravity``: gravity's direction in this
+        frame's camera (3 numbers, OpenCV axes, pointing *down*, any length: a level camera reads
+        about (0, 9.81, 0); pass an accelerometer's reading negated); readings turn the world's z
+        axis up. Either may come with some frames only (gravity once is enough to level).
 
-        Bad input raises an ``InputError`` subclass (``DepthError``, ``GravityError``, ...) before
-        anything changes; backend failures never raise.
+        The result's ``pose`` is None without a map (INIT, MAPPING) or when the backend failed on
+        this frame (``error``); ``pose_valid`` is False while relocalising or for a low-confidence
+        frame; ``keyframe_id`` is set when the frame became a keyframe in this call (synchronous
+        mapping; else the ``on_keyframe`` event reports it later). Bad input raises an
+        ``InputError`` subclass before anything changes; backend failures never raise.
         """
         start = time.perf_counter()
         with self._call():
-            kf_map = self._keeper.map
-            index = self._frames
+            index, kf_map = self._frames, self._keeper.map
             image = to_rgb(image, color)  # before the segmenter sees it
-            given = mask is not None or bbox is not None
-            segmented, searching = None, False
-            if self._object_mode and not given:
-                mask, segmented = self._regions.input_mask(
-                    image, index, kf_map, self._segmenter, min_side=self._preparer.patch_size)
-                if mask is None and kf_map is not None:  # a loaded map, no pose yet: search
-                    mask = self._regions.search_mask(image, min_side=self._preparer.patch_size)
-                    searching = True
-            prompt_ms = _ms(start)  # predicting the region (and asking the segmenter)
+            regions_in = self._mode.before_step(image, index, kf_map, mask, bbox,
+                                                min_side=self._preparer.patch_size, start=start)
             frame_camera = _checked_camera(camera) if camera is not None else self._camera
-            frame = self._preparer.prepare(
-                image, timestamp=timestamp, mask=mask, bbox=bbox,
-                session_input_size=self._input_size,
-                map_resolution=None if kf_map is None else kf_map.resolution,
-                map_preprocessing=None if kf_map is None else kf_map.preprocessing,
-                camera=frame_camera,
-            )
-            check_time_order(frame.timestamp, self._last_timestamp)
-            if depth is not None:
-                metres = check_depth(depth, depth_scale, frame.input_size)
-                if frame_camera is not None:  # registered to the colour frame: undistorted alike
-                    metres = self._depth_undistort(metres, frame_camera, nearest=True)
-                frame = replace(frame, depth=depth_to_model(
-                    metres, frame.transform, frame.image.shape[:2]))
+            frame = self._prepared(image, timestamp, regions_in.mask, bbox, kf_map, frame_camera,
+                                   depth, depth_scale)
             down = check_gravity(gravity)
-            timings = {"preprocess": _ms(start) - prompt_ms}
-            if segmented is not None:
-                timings["segment"] = prompt_ms
-            self._loop.predicted_K = None
-            world_changes = self._loop.world_changes
-            step = self._loop.step(frame, index, timings, down,
-                                   keyframe_allowed=not searching)
-            if self._loop.world_changes != world_changes:
-                self._regions.forget_poses()  # extrapolating across worlds would mix them
-            intrinsics, source = self._intrinsics.resolve(
-                frame, self._loop.predicted_K, self._keeper.map
-            )
-            if intrinsics is not None and source is not None:
-                self._last_intrinsics = (intrinsics, source)
-            region, T_cam_object, object_frame = None, None, None
-            if self._object_mode:
-                region_start = time.perf_counter()
-                supplied = self._regions.supplied(frame.input_size, index, mask if given else None,
-                                                  bbox if given else None, segmented)
-                pose = step.pose.T_world_cam if step.valid and step.pose is not None else None
-                region, T_cam_object = self._regions.observe(
-                    index, self._keeper.map, T_world_cam=pose, camera=intrinsics,
-                    supplied=supplied)
-                if T_cam_object is not None:  # the object frame it refers to
-                    object_frame = self._regions.object_frame(self._keeper.map)
-                timings["region"] = _ms(region_start) + (0.0 if segmented is not None
-                                                          else prompt_ms)
-                self._count_search(searching and not step.valid, index)
-            # counted once the frame went through: an unexpected error leaves both as they were
-            self._frames, self._input_size = index + 1, frame.input_size
-            if frame.timestamp is not None:
-                self._last_timestamp = frame.timestamp
+            timings = {"preprocess": _ms(start) - regions_in.prompt_ms}
+            if regions_in.segmented is not None:
+                timings["segment"] = regions_in.prompt_ms
+            step, intrinsics, source = self._step(frame, index, timings, down,
+                                                  keyframe_allowed=not regions_in.searching)
+            pose = step.pose.T_world_cam if step.valid and step.pose is not None else None
+            seen = self._mode.after_step(regions_in, bbox, frame.input_size, index,
+                                         self._keeper.map, pose, intrinsics, timings)
+            self._object_search(seen, index)
+            self._advance(index, frame)
             timings["total"] = _ms(start)
-            result = FrameResult(
-                index, frame.timestamp, self.state, self.reason, step.pose, step.valid,
-                step.confidence, step.keyframe_id, self._loop.snapshot.map_generation, timings,
-                {"rebuilding": self._keeper.rebuilding}, step.error, intrinsics, source,
-                region, T_cam_object, object_frame,
-            )
+            result = self._result(index, frame, step, (intrinsics, source), seen, timings)
         _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
                    confidence=step.confidence,
                    **{f"{k}_ms": round(v, 3) for k, v in timings.items()})
         return result
 
+    def _result(
+        self, index: int, frame: PreparedFrame, step: Step,
+        camera: tuple[Camera | None, IntrinsicsSource | None], seen: ObjectObservation,
+        timings: dict[str, float],
+    ) -> FrameResult:
+        """Under the lock: the frame's result."""
+        return FrameResult(
+            frame_index=index, timestamp=frame.timestamp, state=self.state,
+            reason=self.reason, pose=step.pose, pose_valid=step.valid,
+            confidence=step.confidence, keyframe_id=step.keyframe_id,
+            map_generation=self._loop.snapshot.map_generation, timings_ms=timings,
+            extras={"rebuilding": self._keeper.rebuilding}, error=step.error,
+            intrinsics=camera[0], intrinsics_source=camera[1], region=seen.region,
+            T_cam_object=seen.T_cam_object, object_frame=seen.object_frame,
+        )
+
+    def _prepared(
+        self, image: np.ndarray, timestamp: float | None, mask: Any, bbox: Any,
+        kf_map: KeyframeMap | None, camera: Camera | None, depth: np.ndarray | None,
+        depth_scale: float | None,
+    ) -> PreparedFrame:
+        """Under the lock: the frame validated and prepared for the model, with its depth (in
+        the model image's pixels) if given; InputError before anything changes."""
+        frame = self._preparer.prepare(
+            image, timestamp=timestamp, mask=mask, bbox=bbox,
+            session_input_size=self._input_size,
+            map_resolution=None if kf_map is None else kf_map.resolution,
+            map_preprocessing=None if kf_map is None else kf_map.preprocessing,
+            camera=camera,
+        )
+        check_time_order(frame.timestamp, self._last_timestamp)
+        if depth is None:
+            return frame
+        metres = check_depth(depth, depth_scale, frame.input_size)
+        if camera is not None:  # registered to the colour frame: undistorted alike
+            metres = self._depth_undistort(metres, camera, nearest=True)
+        return replace(frame, depth=depth_to_model(metres, frame.transform, frame.image.shape[:2]))
+
+    def _step(
+        self, frame: PreparedFrame, index: int, timings: dict[str, float],
+        gravity: np.ndarray | None, *, keyframe_allowed: bool,
+    ) -> tuple[Step, Camera | None, IntrinsicsSource | None]:
+        """Under the lock: the frame loop's step, and the input image's intrinsics after it."""
+        self._loop.predicted_K = None
+        world_changes = self._loop.world_changes
+        step = self._loop.step(frame, index, timings, gravity, keyframe_allowed=keyframe_allowed)
+        if self._loop.world_changes != world_changes:
+            self._mode.forget_poses()  # extrapolating across worlds would mix them
+        intrinsics, source = self._intrinsics.resolve(frame, self._loop.predicted_K,
+                                                      self._keeper.map)
+        if intrinsics is not None and source is not None:
+            self._last_intrinsics = (intrinsics, source)
+        return step, intrinsics, source
+
     # ------------------------------------------------------------------ plumbing
-    def _count_search(self, missed: bool, index: int) -> None:
-        """Object mode: count frames searched in vain for a loaded map's object; the
-        ``object.search_frames``-th sets the reason OBJECT_NOT_FOUND (the app must point at it)."""
-        self._searched = self._searched + 1 if missed else 0
-        if self._searched == self._config.object.search_frames and self.state is _S.RELOCALIZING:
-            self._loop.change(_S.RELOCALIZING, _R.OBJECT_NOT_FOUND, index)
+    def _advance(self, index: int, frame: PreparedFrame) -> None:
+        """Count the frame once it went through: an unexpected error leaves both as they were."""
+        self._frames, self._input_size = index + 1, frame.input_size
+        if frame.timestamp is not None:
+            self._last_timestamp = frame.timestamp
+
+    def _object_search(self, seen: ObjectObservation, index: int) -> None:
+        """Object mode: ``object.search_frames`` frames in a row searched in vain for a loaded
+        map's object: the reason OBJECT_NOT_FOUND (the app must point at it)."""
+        if seen.search_exhausted and self.state is _S.RELOCALIZING:
+            self._loop.fire(TrackingEvent.OBJECT_NOT_FOUND, index)
             _log.warning("the loaded map's object was not found in the whole frame",
-                         frames=self._searched, hint=OBJECT_NOT_FOUND_HINT)
+                         frames=self._config.object.search_frames, hint=OBJECT_NOT_FOUND_HINT)
 
     def _map_camera(self) -> tuple[Camera, IntrinsicsSource] | None:
         """What a saved map records as its camera: the session's given one, else the last

@@ -77,7 +77,10 @@ def test_readable_lines_carry_the_key_values() -> None:
 
 
 def test_progress_reports_fps_and_is_off_without_a_terminal() -> None:
-    result = FrameResult(0, 0.0, TrackingState.TRACKING, StateReason.NONE, None, False, None)
+    result = FrameResult(
+        frame_index=0, timestamp=0.0, state=TrackingState.TRACKING, reason=StateReason.NONE,
+        pose=None, pose_valid=False, confidence=None,
+    )
     quiet = FrameProgress(Console(force_terminal=False), 10, label="t")
     assert not quiet.enabled
     live = FrameProgress(Console(force_terminal=True, record=True, width=120), 10, label="t")

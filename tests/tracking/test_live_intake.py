@@ -140,3 +140,30 @@ def test_the_producer_never_takes_the_trackers_lock(gated: GatedBackend) -> None
         assert gated.entered.get(timeout=WAIT) == len(frames) - 1
         gated.release.release()
         assert tracker.wait_idle(timeout=WAIT)
+
+
+def test_live_callbacks_are_subscriptions_on_the_trackers_one_callback_system() -> None:
+    """``on_result`` / ``on_frame_error`` return a ``Subscription`` like every ``on_*`` callback,
+    and ``unregister`` removes them; a raising callback does not stop the intake."""
+    backend = SimulatedBackend(orbit(8), seed=4)
+    frames = list(backend.frames(SIZE, stop=3))
+    results: list[FrameResult] = []
+    errors: list[BaseException] = []
+
+    def broken(_: FrameResult) -> None:
+        raise RuntimeError("an app's bug")
+
+    with Tracker(TrackerConfig(), backend) as tracker:
+        handle = tracker.on_result(results.append)
+        tracker.on_result(broken)
+        tracker.on_frame_error(errors.append)
+        tracker.submit(frames[0].image, timestamp=frames[0].timestamp)
+        assert tracker.wait_idle(timeout=WAIT)
+        tracker.submit(np.zeros((4, 4), np.uint8))
+        assert tracker.wait_idle(timeout=WAIT)
+        assert tracker.unregister(handle) and not tracker.unregister(handle)
+        tracker.submit(frames[1].image, timestamp=frames[1].timestamp)
+        assert tracker.wait_idle(timeout=WAIT)
+        assert [r.frame_index for r in results] == [0]  # not the one after unregister
+        assert len(errors) == 1 and isinstance(errors[0], InputError)
+        assert tracker.stats.processed == 3

@@ -62,3 +62,25 @@ def test_no_transition_uses_reason_none_and_every_reason_but_none_is_used() -> N
 def test_table_is_read_only() -> None:
     with pytest.raises(TypeError):
         TRANSITIONS[(S.INIT, S.TRACKING)] = frozenset({R.BOOTSTRAP})  # type: ignore[index]
+
+
+def test_the_table_chooses_the_next_state_from_state_and_event() -> None:
+    """Every (state, event) pair either moves (NEXT), changes nothing (UNCHANGED) or raises."""
+    from kvtracker_sdk.tracking.loop.states import NEXT, UNCHANGED, TrackingEvent, next_state
+
+    assert not set(NEXT) & UNCHANGED
+    assert {event for _, event in NEXT} == set(TrackingEvent)  # no event without a move
+    for state, event in itertools.product(TrackingState, TrackingEvent):
+        if (state, event) in NEXT:
+            target, reason = NEXT[(state, event)]
+            assert next_state(state, event) == Transition(state, target, reason)
+            assert transition(state, target, reason) == Transition(state, target, reason)
+        elif (state, event) in UNCHANGED:
+            assert next_state(state, event) is None
+        else:
+            with pytest.raises(IllegalTransitionError, match=f"{event.value} in state"):
+                next_state(state, event)
+    # the timeout policies are three events, not one reason with a hand-picked target
+    assert next_state(S.RELOCALIZING, TrackingEvent.TIMEOUT_STAY).state is S.RELOCALIZING
+    assert next_state(S.RELOCALIZING, TrackingEvent.TIMEOUT_RESET).state is S.INIT
+    assert next_state(S.RELOCALIZING, TrackingEvent.TIMEOUT_NEW_MAP).state is S.MAPPING

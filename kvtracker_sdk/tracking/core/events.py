@@ -57,6 +57,9 @@ class EventKind(str, enum.Enum):
     MAP_UPDATED = "on_map_updated"
     WORLD_FRAME_CHANGED = "on_world_frame_changed"
     BACKEND_FAILED = "on_backend_failed"
+    # the live intake's (``Tracker.submit``), emitted on its worker thread, never queued or logged
+    RESULT = "on_result"  # a ``FrameResult`` of a frame it processed
+    FRAME_ERROR = "on_frame_error"  # the exception ``push_frame`` raised on a frame it took
 
 
 def _frozen_array(array: np.ndarray) -> np.ndarray:
@@ -286,8 +289,10 @@ class EventBus:
         with self._lock:
             return len(self._subscriptions[EventKind(kind)])
 
-    def emit(self, kind: EventKind, payload: Event) -> None:
-        """Deliver ``payload`` to every callback of ``kind``; a raising callback is logged only."""
+    def emit(self, kind: EventKind, payload: object) -> None:
+        """Deliver ``payload`` (an ``Event``; for the live intake's kinds a ``FrameResult`` or an
+        exception) to every callback of ``kind`` now, on this thread; a raising callback is
+        logged only."""
         with self._lock:
             subscriptions = list(self._subscriptions[kind])  # callbacks may (un)register
         for subscription in subscriptions:
@@ -332,6 +337,16 @@ class EventSource:
     def on_backend_failed(self, callback: Callback) -> Subscription:
         """``BackendFailedEvent``: a mapping or tracking pass failed; tracking carried on."""
         return self._events.register(EventKind.BACKEND_FAILED, callback)
+
+    def on_result(self, callback: Callback) -> Subscription:
+        """``FrameResult`` of each frame the live intake (``submit``) processed, on its worker
+        thread."""
+        return self._events.register(EventKind.RESULT, callback)
+
+    def on_frame_error(self, callback: Callback) -> Subscription:
+        """The exception the live intake's ``push_frame`` raised on a frame (a bad frame), on its
+        worker thread."""
+        return self._events.register(EventKind.FRAME_ERROR, callback)
 
     def unregister(self, handle: Subscription | Callback) -> bool:
         """Remove a subscription (or every registration of a callback)."""

@@ -167,6 +167,24 @@ def check_bbox(bbox: Any, size: tuple[int, int]) -> BBox:
     return x0, y0, x1, y1
 
 
+def _check_size_and_camera(
+    size: tuple[int, int], session_input_size: tuple[int, int] | None, camera: Any
+) -> None:
+    """The frame (H, W) ``size`` must be the session's, and a given camera must describe it."""
+    if session_input_size is not None and size != tuple(session_input_size):
+        raise ResolutionChangedError(
+            f"image size changed from {tuple(session_input_size)} to {size} in mid-session; "
+            "call reset() to start a session at the new size"
+        )
+    if camera is not None and not isinstance(camera, Camera):
+        raise InputError(f"camera must be a kvtracker_sdk.Camera, got {type(camera).__name__}")
+    if camera is not None and camera.size != size:
+        raise InputError(
+            f"the camera describes {camera.height}x{camera.width} images, the frame is "
+            f"{size[0]}x{size[1]}"
+        )
+
+
 def _check_timestamp(timestamp: Any) -> float | None:
     if timestamp is None:
         return None
@@ -262,18 +280,7 @@ class FramePreparer:
         pipeline = self.pipeline(map_preprocessing)
         checked = check_image(image, min_side=self.patch_size)
         size = (int(checked.shape[0]), int(checked.shape[1]))
-        if session_input_size is not None and size != tuple(session_input_size):
-            raise ResolutionChangedError(
-                f"image size changed from {tuple(session_input_size)} to {size} in mid-session; "
-                "call reset() to start a session at the new size"
-            )
-        if camera is not None and not isinstance(camera, Camera):
-            raise InputError(f"camera must be a kvtracker_sdk.Camera, got {type(camera).__name__}")
-        if camera is not None and camera.size != size:
-            raise InputError(
-                f"the camera describes {camera.height}x{camera.width} images, the frame is "
-                f"{size[0]}x{size[1]}"
-            )
+        _check_size_and_camera(size, session_input_size, camera)
         stamp = _check_timestamp(timestamp)
         object_mask = check_mask(mask, size) if mask is not None else None
         box = check_bbox(bbox, size) if bbox is not None else None
@@ -296,18 +303,8 @@ class FramePreparer:
             checked = self._undistort(checked, camera)  # same size and K, lens model removed
             camera = camera.undistorted()
         crop = self.config.object.preprocessing is ObjectPreprocessing.CROP
-        if object_mode and crop and object_mask is not None:
-            window = fit_box(
-                box if box is not None else mask_bounds(object_mask),
-                size,
-                margin=self.config.object.crop_margin_px,  # pixels of the pushed frame
-                aspect=out_size[0] / out_size[1],
-            )
-            x0, y0, x1, y1 = window
-            resized = pipeline.resize_crop(checked, window, out_size)
-            object_mask = object_mask[y0:y1, x0:x1]
-        else:
-            resized = pipeline.resize(checked, self.resolution, self.patch_size)
+        resized, object_mask = self._resized(
+            checked, pipeline, out_size, object_mask, box, crop=object_mode and crop)
         small_mask = pipeline.resize_mask(object_mask, out_size) if object_mask is not None else None
         if small_mask is not None and not small_mask.any():
             raise MaskError(f"the mask is too small: it selects no pixel at model size {out_size}")
@@ -317,3 +314,21 @@ class FramePreparer:
         return PreparedFrame(
             image_out, small_mask, size, stamp, resized.transform, pipeline.name, camera
         )
+
+    def _resized(
+        self, checked: np.ndarray, pipeline: Any, out_size: tuple[int, int],
+        object_mask: np.ndarray | None, box: Any, *, crop: bool,
+    ) -> tuple[Any, np.ndarray | None]:
+        """The frame at model size, and the object mask in the same window: a crop around the
+        object (object mode with crops, when a mask is known), else the whole frame resized."""
+        if not (crop and object_mask is not None):
+            return pipeline.resize(checked, self.resolution, self.patch_size), object_mask
+        size = (int(checked.shape[0]), int(checked.shape[1]))
+        window = fit_box(
+            box if box is not None else mask_bounds(object_mask),
+            size,
+            margin=self.config.object.crop_margin_px,  # pixels of the pushed frame
+            aspect=out_size[0] / out_size[1],
+        )
+        x0, y0, x1, y1 = window
+        return pipeline.resize_crop(checked, window, out_size), object_mask[y0:y1, x0:x1]

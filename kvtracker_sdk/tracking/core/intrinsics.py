@@ -16,7 +16,8 @@ Order of precedence for a frame:
    (``IntrinsicsFit.rms_px``, logged at DEBUG): ~1e-4 px on exact pinhole points (float32
    points of the simulated backend or of DA3's unprojected depth); the focal of the simulated
    backend is recovered to < 1e-6 (tested at 1 %). It is recomputed once per map, on every
-   4th pixel of at most 4 keyframes (~1 ms).
+   4th pixel of at most 4 keyframes, which keeps it cheap beside a tracking step
+   (``benchmarks/README.md``).
 
 In object mode with crops, each frame (and keyframe) has its own crop, so a map-wide fit has no
 single input-image meaning: estimation is skipped there (given and predicted still work).
@@ -38,7 +39,7 @@ __all__ = ["FrameIntrinsics", "IntrinsicsFit", "fit_intrinsics"]
 _log = get_logger(__name__)
 _MIN_POINTS = 16
 # The fit runs on the tracking path once per new map: every 4th row and column of at most 4
-# keyframes (~16k points at 224x294, ~1 ms) fits a pinhole camera as well as all of them.
+# keyframes (about 16k points at 224x294) fits a pinhole camera as well as all of them.
 _SAMPLE_STRIDE = 4
 _MAX_KEYFRAMES = 4
 

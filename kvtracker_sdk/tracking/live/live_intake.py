@@ -1,12 +1,13 @@
 """Non-blocking intake for a live camera: hand a frame over and return at once.
 
-A camera thread cannot wait for a network step of 50 ms to 5 s. ``LiveIntake`` gives it
+A camera thread cannot wait for a network step (tens of milliseconds to seconds, depending on the
+model and the machine). ``LiveIntake`` gives it
 ``submit(image, timestamp)``, which only stores the frame in a **one-slot mailbox** and returns
 (no lock the worker ever holds, no network, no I/O; a copy of the image unless ``copy=False``):
 the mailbox is a ``deque(maxlen=1)`` and the worker's doorbell a ``queue.SimpleQueue``, both
 single C calls under the GIL, so a worker descheduled by a busy machine cannot hold the camera
-thread up (a ``threading.Condition`` shared with the worker did: p99.9 7-15 ms vs 3-5 ms for a
-bare image copy on a 2-core machine at load 13). One worker
+thread up (a ``threading.Condition`` shared with the worker did; the handover's measured cost
+beside a bare image copy: ``benchmarks/README.md``, ``live.py``). One worker
 thread takes whatever the slot holds — always the newest frame — and runs ``Tracker.push_frame``
 on it. A frame still waiting when a newer one arrives is dropped and counted (the official
 KV-Tracker demo reads its RealSense through a one-slot queue the same way).
@@ -34,17 +35,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from kvtracker_sdk.errors import KVTrackerError, StateError
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.log import get_logger
+from kvtracker_sdk.tracking.core.events import EventBus, EventKind, Subscription
 from kvtracker_sdk.types import FrameResult
-
-if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["LiveIntake", "LiveStats"]
 
@@ -102,8 +101,16 @@ class _Pending:
 class LiveIntake:
     """A one-slot, newest-frame-wins intake in front of ``tracker`` (a worker thread)."""
 
-    def __init__(self, tracker: Tracker, *, copy: bool = True) -> None:
-        self._tracker = tracker
+    def __init__(
+        self, push_frame: Callable[..., FrameResult], *, events: EventBus | None = None,
+        copy: bool = True,
+    ) -> None:
+        """An adapter over a tracker: ``push_frame`` is its ``Tracker.push_frame`` (the intake
+        needs nothing else of it); ``events``: the bus its ``on_result`` / ``on_error``
+        callbacks are registered on (the tracker's, so that ``Tracker.on_result`` and
+        ``unregister`` reach them)."""
+        self._push_frame = push_frame
+        self._events = events if events is not None else EventBus()
         self._copy = bool(copy)
         self._mailbox: deque[_Pending] = deque(maxlen=1)  # append drops the waiting frame
         self._doorbell: queue.SimpleQueue[None] = queue.SimpleQueue()
@@ -115,8 +122,6 @@ class LiveIntake:
         self._latencies: deque[float] = deque(maxlen=_LATENCY_SAMPLES)
         self._delivered_at: deque[float] = deque()
         self._latest: FrameResult | None = None
-        self._on_result: list[ResultCallback] = []
-        self._on_error: list[ErrorCallback] = []
         self._worker = threading.Thread(target=self._run, name="kvtracker-live", daemon=True)
         self._worker.start()
 
@@ -159,13 +164,13 @@ class LiveIntake:
         self._doorbell.put(None)  # never blocks
 
     # ------------------------------------------------------------------ app side
-    def on_result(self, callback: ResultCallback) -> None:
+    def on_result(self, callback: ResultCallback) -> Subscription:
         """Call ``callback(result)`` on the worker thread after every processed frame."""
-        self._on_result.append(callback)
+        return self._events.register(EventKind.RESULT, callback)
 
-    def on_error(self, callback: ErrorCallback) -> None:
+    def on_error(self, callback: ErrorCallback) -> Subscription:
         """Call ``callback(exception)`` on the worker thread when ``push_frame`` raises."""
-        self._on_error.append(callback)
+        return self._events.register(EventKind.FRAME_ERROR, callback)
 
     def latest(self) -> FrameResult | None:
         """The most recent result (None before the first)."""
@@ -246,7 +251,7 @@ class LiveIntake:
 
     def _process(self, item: _Pending) -> tuple[FrameResult | None, BaseException | None]:
         try:
-            result = self._tracker.push_frame(
+            result = self._push_frame(
                 item.image, timestamp=item.timestamp, mask=item.mask, bbox=item.bbox,
                 camera=item.camera, color=item.color, depth=item.depth,
                 depth_scale=item.depth_scale, gravity=item.gravity,
@@ -259,10 +264,8 @@ class LiveIntake:
         return result, None
 
     def _deliver(self, result: FrameResult | None, error: BaseException | None) -> None:
-        callbacks: list[Any] = self._on_result if error is None else self._on_error
-        payload: Any = result if error is None else error
-        for callback in list(callbacks):
-            try:
-                callback(payload)
-            except Exception as exc:  # an app's callback must not stop the intake
-                _log.exception("live_callback_failed", error=repr(exc))
+        # a raising callback is logged by the bus: an app's callback must not stop the intake
+        if error is None:
+            self._events.emit(EventKind.RESULT, result)
+        else:
+            self._events.emit(EventKind.FRAME_ERROR, error)

@@ -38,9 +38,9 @@ from kvtracker_sdk.tracking.core.events import (
 from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
 from kvtracker_sdk.tracking.core.quality import ConfidenceMonitor, frame_confidence
 from kvtracker_sdk.tracking.loop.reporting import WorldFrameChange, failure_event, rebuild_events
-from kvtracker_sdk.tracking.loop.states import transition
+from kvtracker_sdk.tracking.loop.states import TrackingEvent, next_state
 from kvtracker_sdk.tracking.mapping.failures import MappingFailure, track_checked
-from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
+from kvtracker_sdk.tracking.mapping.map_builder import RebuildCause, RebuildOutcome
 from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper
 from kvtracker_sdk.tracking.world.world_alignment import WorldAligner, WorldChange
 from kvtracker_sdk.types import Pose, StateReason, TrackedPose, TrackerSnapshot, TrackingState
@@ -48,7 +48,7 @@ from kvtracker_sdk.world import WorldAlignment
 
 __all__ = ["FrameLoop", "Step"]
 
-_S, _R = TrackingState, StateReason
+_S, _R, _E = TrackingState, StateReason, TrackingEvent
 
 
 def _ms(since: float) -> float:
@@ -225,10 +225,9 @@ class FrameLoop:
     def _bootstrap(self, frame: PreparedFrame, index: int, timings: dict[str, float]) -> Step:
         """No map: this frame starts the first map (or a new one) unless one is being built or
         a failed pass's backoff (or a rejected new map's wait) is running."""
-        if self.state is _S.INIT:
-            self.change(_S.MAPPING, _R.BOOTSTRAP, index)
+        self.fire(_E.FRAME_WITHOUT_MAP, index)
         if not self.keeper.rebuilding and self.keeper.may_start(index):
-            cause = "new_map" if self.reason is _R.NEW_MAP else "bootstrap"
+            cause = RebuildCause.NEW_MAP if self.reason is _R.NEW_MAP else RebuildCause.BOOTSTRAP
             self.keeper.start_bootstrap(self.backend, frame, index, cause)
             self.collect(index, timings)
         if self.keeper.map is None:
@@ -241,23 +240,23 @@ class FrameLoop:
         """Confidence verdict -> state transitions (and the timeout policy)."""
         state = self.state
         if state is _S.TRACKING and lost:
-            self.change(_S.RELOCALIZING, _R.LOW_CONFIDENCE, index)
+            self.fire(_E.CONFIDENCE_LOST, index)
         elif state is _S.RELOCALIZING and recovered:
-            self.change(_S.TRACKING, _R.RELOCALIZED, index)
+            self.fire(_E.CONFIDENCE_REGAINED, index)
         elif state is _S.RELOCALIZING and timed_out:
             policy_ = self.config.relocalization.timeout_policy
             if policy_ is TimeoutPolicy.STAY:
-                self.change(_S.RELOCALIZING, _R.TIMEOUT, index)
+                self.fire(_E.TIMEOUT_STAY, index)
                 return
             # the next map must start from a frame as confident as this map's were, in absolute
             # terms: judged against itself, a frame taken during the loss would pass
             floor = self.monitor.threshold * self.monitor.reference
             if policy_ is TimeoutPolicy.RESET:
                 self.drop_map(_R.TIMEOUT, floor=floor)
-                self.change(_S.INIT, _R.TIMEOUT, index)
+                self.fire(_E.TIMEOUT_RESET, index)
             else:
                 self.drop_map(_R.NEW_MAP, floor=floor)
-                self.change(_S.MAPPING, _R.NEW_MAP, index)
+                self.fire(_E.TIMEOUT_NEW_MAP, index)
 
     # ------------------------------------------------------------------ maps
     def collect(
@@ -288,8 +287,9 @@ class FrameLoop:
             for change in self.aligner.after_rebuild(outcome, self.keeper.map):
                 self.apply_world(change, index)
         if self.state is _S.MAPPING:
-            reason = _R.NEW_MAP if outcome.request.cause == "new_map" else _R.BOOTSTRAP
-            self.change(_S.TRACKING, _R.RELAXED_FLOOR if relaxed else reason, index)
+            new_map = outcome.request.cause is RebuildCause.NEW_MAP
+            event = _E.NEW_MAP_BUILT if new_map else _E.MAP_BUILT
+            self.fire(_E.RELAXED_MAP_BUILT if relaxed else event, index)
         return outcome
 
     def install_loaded(self, kf_map: KeyframeMap, *, rebuild: bool = False) -> None:
@@ -302,7 +302,7 @@ class FrameLoop:
         # the backend may have been swapped for another runtime since the map was read
         self.keeper.convert_cache(self.backend.info.dtype, self.backend.info.device)
         self.monitor.set_reference(kf_map.keyframes[0].mean_confidence)
-        self.change(_S.RELOCALIZING, _R.MAP_LOADED, None)
+        self.fire(_E.MAP_LOADED, None)
         self.events.post(EventKind.MAP_UPDATED, MapUpdatedEvent.of(kf_map, "loaded"))
         if change is not None:
             self.events.post(EventKind.WORLD_FRAME_CHANGED, WorldFrameChangedEvent(
@@ -318,9 +318,13 @@ class FrameLoop:
         self.aligner.reset()
         self.snapshot = replace(self.snapshot, pose=None)
 
-    def change(self, target: TrackingState, reason: StateReason, index: int | None) -> None:
-        """The one place the state changes (through the transition table)."""
-        move = transition(self.state, target, reason)
+    def fire(self, event: TrackingEvent, index: int | None) -> None:
+        """The one place the state changes: the table (``states.NEXT``) chooses the next state
+        and its reason from the current state and ``event``; an event that changes nothing in
+        this state (``states.UNCHANGED``) sends no state-change event."""
+        move = next_state(self.state, event)
+        if move is None:
+            return
         self.snapshot = replace(self.snapshot, state=move.state, reason=move.reason)
         self.monitor.reset()
         self.events.post(

@@ -48,7 +48,7 @@ def rebuild_events(
     events: list[tuple[EventKind, Event]] = [
         (EventKind.KEYFRAME, KeyframeEvent.of(candidate, new_map.generation)),
         (EventKind.MAP_UPDATED, MapUpdatedEvent.of(
-            new_map, request.cause, request.evicted, outcome.correction)),
+            new_map, request.cause.value, request.evicted, outcome.correction)),
     ]
     if request.previous is None and world_change is not None:
         reason, previous_generation = world_change

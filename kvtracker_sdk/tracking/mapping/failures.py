@@ -54,7 +54,7 @@ def mapping_error(exc: BaseException, request: RebuildRequest) -> MappingFailedE
     if isinstance(exc, MappingFailedError):
         return exc
     error = MappingFailedError(
-        f"{request.cause} mapping pass for frame {request.candidate.frame_index} failed: "
+        f"{request.cause.value} mapping pass for frame {request.candidate.frame_index} failed: "
         f"{type(exc).__name__}: {exc}"
     )
     error.__cause__ = exc

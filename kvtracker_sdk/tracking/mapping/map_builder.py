@@ -8,6 +8,7 @@ the tracker keeps tracking against the previous map. Installing the outcome is t
 
 from __future__ import annotations
 
+import enum
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -15,7 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from kvtracker_sdk.backends.base import Backend
+from kvtracker_sdk.backends.base import Backend, MapResult
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.cache.pruning import object_token_mask, prune_cache
@@ -33,7 +34,14 @@ from kvtracker_sdk.tracking.core.quality import masked_mean
 from kvtracker_sdk.tracking.world.metric_scale import DepthScaleFit, fit_depth_scale
 from kvtracker_sdk.world import MapWorld, ScaleSource
 
-__all__ = ["KeyframeCandidate", "RebuildOutcome", "RebuildRequest", "build_map", "compact_cache"]
+__all__ = [
+    "KeyframeCandidate",
+    "RebuildCause",
+    "RebuildOutcome",
+    "RebuildRequest",
+    "build_map",
+    "compact_cache",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +57,18 @@ class KeyframeCandidate:
     sensor_depth: np.ndarray | None = None  # float32 [h, w] metres at model resolution (0 = hole)
 
 
+class RebuildCause(str, enum.Enum):
+    """Why a mapping pass runs; its value is what events (``MapUpdatedEvent.cause``) and logs
+    say."""
+
+    BOOTSTRAP = "bootstrap"  # the first map: the frame becomes keyframe 0
+    KEYFRAME = "keyframe"  # a keyframe candidate joins the current map
+    NEW_MAP = "new_map"  # a new map after a relocalisation timeout (policy ``new_map``)
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass(frozen=True)
 class RebuildRequest:
     """What to map: ``keep`` (keyframe 0 first, world frame) plus ``candidate``.
@@ -61,7 +81,7 @@ class RebuildRequest:
     keep: tuple[Keyframe, ...]
     evicted: tuple[int, ...]
     candidate: KeyframeCandidate
-    cause: str  # "bootstrap", "keyframe", "new_map"
+    cause: RebuildCause
     generation: int  # generation the new map gets if accepted
     # a bootstrap after a lost map: keyframe 0's mean confidence must reach this absolute floor
     min_confidence: float | None = None
@@ -157,24 +177,15 @@ def compact_cache(
         )
 
 
-def build_map(
-    backend: Backend,
-    request: RebuildRequest,
-    *,
-    rejection: RejectionConfig,
-    align_gauge: bool = True,
-    compaction: MapCompactionConfig | None = None,
-    object_masked: bool = False,
-    cache_storage: str | None = None,
-) -> RebuildOutcome:
-    """Run the mapping pass for ``request`` and build the new map (see module docstring);
-    ``compaction`` prunes its cache (``compact_cache``), then ``cache_storage`` ``"int8"`` /
-    ``"fp8"`` quantises it (None: as it came)."""
-    start = time.perf_counter()
-    previous, candidate_frame = request.previous, request.candidate
-    if previous is not None and previous.preprocessing != candidate_frame.preprocessing:
+def _mapping_pass(
+    backend: Backend, request: RebuildRequest
+) -> tuple[list[Keyframe | KeyframeCandidate], tuple[int, int], MapResult]:
+    """The mapping pass over the kept keyframes and the candidate: (its frames, the model image
+    size (h, w), the backend's checked result)."""
+    previous, candidate = request.previous, request.candidate
+    if previous is not None and previous.preprocessing != candidate.preprocessing:
         raise MapPreprocessingError(
-            f"cannot add a frame prepared by {candidate_frame.preprocessing!r} to a map whose "
+            f"cannot add a frame prepared by {candidate.preprocessing!r} to a map whose "
             f"keyframes were prepared by {previous.preprocessing!r}"
         )
     sources: list[Keyframe | KeyframeCandidate] = [*request.keep, request.candidate]
@@ -187,25 +198,39 @@ def build_map(
             f"cache of {result.cache.num_keyframes} keyframes"
         )
     _check_finite(result.poses, result.confidence, result.cache)
-    depth_fit = fit_depth_scale(
-        [s.sensor_depth for s in sources], [points[..., 2] for points in result.local_points],
-        list(result.confidence), [s.mask for s in sources], patch_size=backend.info.patch_size,
-    )
+    return sources, size, result
+
+
+def _gauge_and_world(
+    request: RebuildRequest, result: MapResult, align_gauge: bool, depth_fit: DepthScaleFit | None
+) -> tuple[Sim3, MapWorld]:
+    """The new map's gauge (raw network frame -> world) and its world's description: scale from
+    the sensor's depth when the request anchors to it and the fit succeeded."""
     anchored = request.anchor_to_depth and depth_fit is not None
     gauge = _gauge(request, result.poses, result.local_points, align_gauge,
                    depth_fit.scale if anchored and depth_fit is not None else None)
+    previous = request.previous
     world = previous.world if previous is not None else MapWorld()
     if anchored and depth_fit is not None:
         world = replace(world, scale_source=ScaleSource.DEPTH,
                         scale_uncertainty=depth_fit.relative_uncertainty)
+    return gauge, world
+
+
+def _world_keyframes(
+    sources: Sequence[Keyframe | KeyframeCandidate], result: MapResult, gauge: Sim3,
+    anchors_world: bool,
+) -> tuple[Keyframe, ...]:
+    """The pass's frames as keyframes in the world frame (poses and local points through
+    ``gauge``); ``anchors_world``: keyframe 0's camera is the world frame."""
     world_poses = gauge.apply_to_pose(result.poses)
-    if align_gauge and _anchors_world(request):
+    if anchors_world:
         # keyframe 0's camera IS the world frame: its pose is the identity by definition.
         # Computed as gauge(raw pose) it is R0^T R0, the identity only to how orthonormal the
-        # network's float32 R0 is and how the CPU's kernels rounded it (~1e-6, differing
-        # between instruction sets and thread counts), so it is set, not computed.
+        # network's float32 R0 is and how the CPU's kernels rounded it (differing in the last
+        # bits between instruction sets and thread counts), so it is set, not computed.
         world_poses[0] = np.eye(4)
-    keyframes = tuple(
+    return tuple(
         Keyframe(
             keyframe_id=source.keyframe_id,
             frame_index=source.frame_index,
@@ -220,6 +245,30 @@ def build_map(
         )
         for i, source in enumerate(sources)
     )
+
+
+def build_map(
+    backend: Backend,
+    request: RebuildRequest,
+    *,
+    rejection: RejectionConfig,
+    align_gauge: bool = True,
+    compaction: MapCompactionConfig | None = None,
+    object_masked: bool = False,
+    cache_storage: str | None = None,
+) -> RebuildOutcome:
+    """Run the mapping pass for ``request`` and build the new map (see module docstring);
+    ``compaction`` prunes its cache (``compact_cache``), then ``cache_storage`` ``"int8"`` /
+    ``"fp8"`` quantises it (None: as it came)."""
+    start = time.perf_counter()
+    candidate_frame = request.candidate
+    sources, size, result = _mapping_pass(backend, request)
+    depth_fit = fit_depth_scale(
+        [s.sensor_depth for s in sources], [points[..., 2] for points in result.local_points],
+        list(result.confidence), [s.mask for s in sources], patch_size=backend.info.patch_size,
+    )
+    gauge, world = _gauge_and_world(request, result, align_gauge, depth_fit)
+    keyframes = _world_keyframes(sources, result, gauge, align_gauge and _anchors_world(request))
     cache = result.cache
     cache.relabel_keyframes([kf.keyframe_id for kf in keyframes])
     if compaction is not None:  # pruned first: scores from the exact keys, fewer to quantise

@@ -28,7 +28,12 @@ from kvtracker_sdk.errors import BackendError
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.tracking.core.gauge import keyframe_corrections
 from kvtracker_sdk.tracking.core.quality import masked_mean
-from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome, RebuildRequest, build_map
+from kvtracker_sdk.tracking.mapping.map_builder import (
+    RebuildCause,
+    RebuildOutcome,
+    RebuildRequest,
+    build_map,
+)
 from kvtracker_sdk.types import HeadSet
 
 __all__ = ["insert_keyframe", "rebuild_or_insert"]
@@ -43,7 +48,7 @@ def _insertable(backend: Backend, request: RebuildRequest, compaction: MapCompac
     previous = request.previous
     return (
         compaction.incremental_keyframes
-        and request.cause == "keyframe"
+        and request.cause is RebuildCause.KEYFRAME
         and previous is not None
         and bool(request.keep)
         and previous.insertions < compaction.rebuild_every

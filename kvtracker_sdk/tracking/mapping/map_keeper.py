@@ -6,6 +6,10 @@ rebuild (inline or on the mapping worker, see ``mapper``), and on ``collect`` in
 map with one reference assignment (the atomic swap) or notes a rejection. The ``Tracker`` turns
 what ``collect`` returns into state changes and events.
 
+The keeper's cycle of mapping passes (idle, building, a candidate waiting, failed with a
+backoff) is named in ``rebuild_cycle``: ``phase`` reads it from what the keeper holds, and every
+change is checked against that table.
+
 Counters that outlive a map (keyframe ids, generations) never go back, so an id or a generation
 seen by an app always names one keyframe or one map.
 
@@ -51,15 +55,17 @@ from kvtracker_sdk.tracking.mapping import keyframes as policy
 from kvtracker_sdk.tracking.mapping.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.mapping.map_builder import (
     KeyframeCandidate,
+    RebuildCause,
     RebuildOutcome,
     RebuildRequest,
 )
 from kvtracker_sdk.tracking.mapping.map_insertion import rebuild_or_insert
 from kvtracker_sdk.tracking.mapping.mapper import Mapper
+from kvtracker_sdk.tracking.mapping.rebuild_cycle import RebuildEvent, RebuildPhase, check_move
 from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
 from kvtracker_sdk.tracking.world.world_alignment import WorldChange, transform_map
 from kvtracker_sdk.types import MapStatus
-from kvtracker_sdk.world import ScaleSource
+from kvtracker_sdk.world import MapWorld, ScaleSource
 
 __all__ = ["FLOOR_RELAXES_AFTER", "MapKeeper"]
 
@@ -117,30 +123,34 @@ class MapKeeper:
         self._count_from_next = False  # a loaded map: the interval counts from its first frame
 
     @property
+    def phase(self) -> RebuildPhase:
+        """Where the rebuild cycle is (``rebuild_cycle``), read from what the keeper holds."""
+        if self._mapper.pending:
+            if self._waiting is not None:
+                return RebuildPhase.CANDIDATE_WAITING
+            return RebuildPhase.BUILDING
+        return RebuildPhase.FAILED if self._consecutive_failures > 0 else RebuildPhase.IDLE
+
+    @property
     def rebuilding(self) -> bool:
         """A rebuild was started and its result not installed (or rejected) yet."""
         return self._mapper.pending
 
     def status(self) -> MapStatus:
-        kf_map, rebuilding = self.map, self._mapper.pending
-        failing = self._consecutive_failures > 0
-        extra = {
-            "keyframe_waiting": self._waiting is not None,
-            "deferred_replaced": self._deferred_replaced,
-            "failed_passes": self._failed_passes,
-            "last_error": self._last_error,
-            "retry_at_frame": self._retry_frame if failing else None,
-        }
-        if kf_map is None:  # the generation never goes back, also without a map (after reset)
-            return MapStatus(0, 0, self.generation, rebuilding, **extra)  # type: ignore[arg-type]
+        kf_map, failing = self.map, self._consecutive_failures > 0
+        # the generation never goes back, also without a map (after reset)
         return MapStatus(
-            kf_map.num_keyframes,
-            kf_map.cache.nbytes,
-            kf_map.generation,
-            rebuilding,
-            kf_map.keyframe_ids,
-            **extra,  # type: ignore[arg-type]
-            world=kf_map.world,
+            num_keyframes=0 if kf_map is None else kf_map.num_keyframes,
+            cache_bytes=0 if kf_map is None else kf_map.cache.nbytes,
+            generation=self.generation if kf_map is None else kf_map.generation,
+            rebuilding=self._mapper.pending,
+            keyframe_ids=() if kf_map is None else kf_map.keyframe_ids,
+            keyframe_waiting=self._waiting is not None,
+            deferred_replaced=self._deferred_replaced,
+            failed_passes=self._failed_passes,
+            last_error=self._last_error,
+            retry_at_frame=self._retry_frame if failing else None,
+            world=MapWorld() if kf_map is None else kf_map.world,
         )
 
     # ------------------------------------------------------------------ world transforms
@@ -182,6 +192,7 @@ class MapKeeper:
     def drop(self, *, floor: float | None = None) -> None:
         """Forget the map and any rebuild in flight (its result will be ignored). ``floor``: the
         absolute mean confidence the next map's keyframe 0 must reach (None: any frame)."""
+        before = self.phase
         self._mapper.discard()
         self._taken = self._started
         self._pending_world = None
@@ -189,6 +200,7 @@ class MapKeeper:
         self._rebuild_foreign = False
         self._floor = floor
         self._clear_counters()
+        check_move(before, RebuildEvent.DROP, self.phase)
 
     def convert_cache(self, dtype: str, device: str, *, dequantize: bool = False) -> None:
         """Re-express the map's K/V in another backend's dtype and device (a backend swap between
@@ -300,17 +312,21 @@ class MapKeeper:
             )
         proposal = _Proposal(frame, index, np.asarray(T_world_cam, dtype=np.float64))
         self._last_proposed_frame = index
-        if not self._mapper.pending:
+        before = self.phase
+        if before in (RebuildPhase.IDLE, RebuildPhase.FAILED):
             return self._start_keyframe(backend, proposal)
+        event = RebuildEvent.DEFER
         if self._waiting is not None:
+            event = RebuildEvent.REPLACE
             self._deferred_replaced += 1
             _log.warning("keyframe candidate replaced while waiting for a slow rebuild",
                          replaced_frame=self._waiting.index, frame_index=index)
         self._waiting = proposal
+        check_move(before, event, self.phase)
         return None
 
     def start_bootstrap(
-        self, backend: Backend, frame: PreparedFrame, index: int, cause: str
+        self, backend: Backend, frame: PreparedFrame, index: int, cause: RebuildCause
     ) -> None:
         """Start the first map (or a new one): ``frame`` becomes keyframe 0."""
         self._start(backend, None, (), frame, index, cause)
@@ -323,7 +339,8 @@ class MapKeeper:
         evicted = self._budget.select_evictions(kf_map.keyframes, kf_map.cache.bytes_per_keyframe())
         keep = tuple(kf for kf in kf_map.keyframes if kf.keyframe_id not in evicted)
         self._in_flight = (proposal,)
-        return self._start(backend, kf_map, keep, proposal.frame, proposal.index, "keyframe", evicted)
+        return self._start(backend, kf_map, keep, proposal.frame, proposal.index,
+                           RebuildCause.KEYFRAME, evicted)
 
     def _bootstrap_floor(self) -> float | None:
         """The mean confidence a new map's keyframe 0 must reach now (None: any frame): the lost
@@ -340,9 +357,10 @@ class MapKeeper:
         keep: tuple,
         frame: PreparedFrame,
         index: int,
-        cause: str,
+        cause: RebuildCause,
         evicted: tuple[int, ...] = (),
     ) -> int:
+        before = self.phase
         candidate = KeyframeCandidate(
             self._next_keyframe_id, index, frame.timestamp, frame.image, frame.mask,
             frame.preprocessing, frame.depth,
@@ -378,6 +396,7 @@ class MapKeeper:
                 cache_storage=None if storage == "backend" else storage,
             )
         )
+        check_move(before, RebuildEvent.START, self.phase)
         return candidate.keyframe_id
 
     def collect(
@@ -389,12 +408,14 @@ class MapKeeper:
         Returns the outcome (a ``MappingFailure`` if the pass failed: it never raises), or None
         when no rebuild finished within ``timeout`` seconds.
         """
-        request = self._request
+        request, before = self._request, self.phase
         try:
             outcome = self._mapper.take(timeout=timeout)
         except Exception as exc:  # any backend failure: the frame loop must go on
             assert request is not None  # a pending job always has its request
-            return self._failed(backend, request, exc)
+            failure = self._failed(backend, request, exc)
+            check_move(before, RebuildEvent.FAIL, self.phase)
+            return failure
         if outcome is None:
             return None
         outcome = self._into_current_world(outcome)
@@ -413,6 +434,8 @@ class MapKeeper:
                 self._floor_rejections += 1
             self._last_proposed_frame = self._last_accepted_frame
         self._start_waiting(backend)
+        check_move(before, RebuildEvent.ACCEPT if outcome.accepted else RebuildEvent.REJECT,
+                   self.phase)
         return outcome
 
     def _failed(
@@ -432,7 +455,7 @@ class MapKeeper:
         self._retry_frame = max(self._retry_frame, retry_at)
         # the next frame past the backoff may propose again
         self._in_flight, self._last_proposed_frame = (), self._last_accepted_frame
-        _log.warning("mapping pass failed", cause=request.cause, frame_index=candidate.frame_index,
+        _log.warning("mapping pass failed", cause=request.cause.value, frame_index=candidate.frame_index,
                      error=str(error), retry_at_frame=retry_at)
         self._start_waiting(backend)
         return MappingFailure(request, error, self._consecutive_failures, retry_at)

@@ -71,7 +71,7 @@ __all__ = [
 ]
 
 POINT_STEP = 2  # every 2nd row and column of a keyframe: dense enough to fill a silhouette
-MAX_MODEL_POINTS = 4096  # points projected twice per frame (~1 ms per frame at 196x252)
+MAX_MODEL_POINTS = 4096  # points projected twice per frame: bounds the per-frame cost
 _MIN_CONFIDENCE_RATIO = 0.5  # of the keyframe's median masked confidence (drops flying pixels)
 _FUSED_POINTS = 16384  # fused points sampled per map (the model keeps MAX_MODEL_POINTS of them)
 _ANCHOR_RADII = 2.0  # fused points lie within this many radii of the first keyframe's object
