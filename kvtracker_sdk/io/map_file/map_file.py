@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
+from types import MappingProxyType
 
 import torch
 
@@ -37,15 +38,14 @@ from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackingMode
-from kvtracker_sdk.errors import (
-    BackendMismatchError,
-    MapError,
-    MapFormatError,
-    MapIOError,
-    MapModelMismatchError,
-)
+from kvtracker_sdk.errors import BackendMismatchError, MapError, MapFormatError, MapIOError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS, atomic_write
+from kvtracker_sdk.io.map_file.compatibility import (
+    MapCompatibility,
+    TrackerRequest,
+    map_compatibility,
+)
 from kvtracker_sdk.io.map_file.keyframe_codec import KEYFRAME_ENCODINGS
 from kvtracker_sdk.io.map_file.map_format import (
     MapInfo,
@@ -72,7 +72,7 @@ from kvtracker_sdk.io.map_file.map_tensors import (
 from kvtracker_sdk.io.map_file.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
 
-__all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
+__all__ = ["LoadedMap", "MapInfo", "load_map", "read_map_info", "save_map"]
 
 _log = get_logger(__name__)
 PathLike = str | os.PathLike[str]
@@ -81,10 +81,13 @@ _PLACEHOLDER_DIGEST = "0" * 64  # a sha256 hex digest's length
 
 @dataclass(frozen=True, eq=False)
 class LoadedMap:
-    """A map read from a file: the map data, its header, and the tracker config it was saved with."""
+    """A map read from a file: the map data, its header, and the tracker config it was saved with.
+    ``compatibility``: the answer for the backend (and tracker request) it was loaded for; None
+    when loaded without one."""
 
     keyframe_map: KeyframeMap
     info: MapInfo
+    compatibility: MapCompatibility | None = None
 
     @property
     def tracker_config_json(self) -> str:
@@ -160,7 +163,7 @@ def _saved_info(
         dtype=dtype,
         tokens_per_frame=cache.tokens_per_frame,
         mode=str(mode),
-        tracker_config_json=tracker_config_json,
+        tracker_config=MappingProxyType(config),
         keyframe_ids=keyframe_ids,
         cache_keyframe_ids=cache.keyframe_ids,
         generation=keyframe_map.generation,
@@ -269,63 +272,33 @@ def read_map_info(path: PathLike) -> MapInfo:
         return _read_header(file)[0]
 
 
-def _describe(backend: BackendInfo) -> str:
-    return f"model {backend.model!r} (family {backend.family}, fingerprint {backend.fingerprint})"
-
-
-def check_map_compatible(
-    info: MapInfo, backend: BackendInfo, *, resolution: tuple[int, int] | None = None
-) -> None:
-    """Raise MapModelMismatchError unless ``backend`` computes the function that made the map.
-
-    Family, config hash, weights fingerprint, cache layout and tokenisation must agree (the
-    runtime, device and dtype may differ); ``resolution`` (H, W), if given, must equal the map's.
-    """
-    saved = info.backend
-    differences = [
-        f"{what} {mine!r} vs {theirs!r}"
-        for what, mine, theirs in (
-            ("family", saved.family, backend.family),
-            ("config hash", saved.config_hash, backend.config_hash),
-            ("weights fingerprint", saved.weights_fingerprint, backend.weights_fingerprint),
-            ("cache layout", saved.layout, backend.layout),
-            ("patch size", saved.patch_size, backend.patch_size),
-            (
-                "extra tokens per frame",
-                saved.extra_tokens_per_frame,
-                backend.extra_tokens_per_frame,
-            ),
-            ("resolution", info.resolution, tuple(resolution or info.resolution)),
-        )
-        if mine != theirs
-    ]
-    if differences:
-        raise MapModelMismatchError(
-            f"map made by {_describe(saved)} at {info.resolution[0]}x{info.resolution[1]} cannot "
-            f"be used with {_describe(backend)}: " + "; ".join(differences) + " (map vs backend)"
-        )
-
-
 def load_map(
     path: PathLike,
     *,
     expected_backend: BackendInfo | None = None,
     expected_resolution: tuple[int, int] | None = None,
     verify_checksums: bool = True,
+    tracker: TrackerRequest | None = None,
 ) -> LoadedMap:
-    """Load the map at ``path``: header checks, model check, read through one descriptor,
+    """Load the map at ``path``: header checks, compatibility, read through one descriptor,
     checksums (``io.map_reader``).
 
-    With ``expected_backend`` the map must come from the same model (see
-    :func:`check_map_compatible`; checked before any tensor is read) and the cache is returned
-    in that backend's dtype (if it is a cache dtype) and on its device; ``expected_resolution``
-    (H, W) must match the map's. ``verify_checksums=False`` skips hashing the tensor data
-    (about twice as fast; the header and sizes are still checked).
+    With ``expected_backend`` the map must be able to run with it (see
+    :func:`~kvtracker_sdk.io.map_file.compatibility.map_compatibility`, asked with
+    ``expected_resolution`` (H, W) and ``tracker`` before any tensor is read; its first refusal is
+    raised) and the cache is returned in that backend's dtype (if it is a cache dtype) and on its
+    device. ``verify_checksums=False`` skips hashing the tensor data (about twice as fast; the
+    header and sizes are still checked).
     """
+    compatibility = None
     with open_map_file(path) as file:
         info, offsets = _read_header(file)
         if expected_backend is not None:
-            check_map_compatible(info, expected_backend, resolution=expected_resolution)
+            compatibility = map_compatibility(
+                info, expected_backend, resolution=expected_resolution, tracker=tracker,
+                source=str(path),
+            )
+            compatibility.raise_if_refused()
         tensors, cache, digests = read_map_tensors(file, info, offsets, verify=verify_checksums)
     source = file.source
     if verify_checksums:
@@ -337,4 +310,4 @@ def load_map(
         device = expected_backend.device
     keyframe_map = map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
     _log.info("map loaded", path=source, keyframes=info.num_keyframes, verified=verify_checksums)
-    return LoadedMap(keyframe_map=keyframe_map, info=info)
+    return LoadedMap(keyframe_map=keyframe_map, info=info, compatibility=compatibility)

@@ -93,7 +93,8 @@ class MapInfo:
     dtype: str  # cache storage name, a key of CACHE_DTYPES (int8 / float8_e4m3fn: quantised)
     tokens_per_frame: int
     mode: str  # tracking mode of the session that saved the map ("scene", "object")
-    tracker_config_json: str  # the tracker configuration, JSON text exactly as saved
+    # the tracker configuration saved with the map (a JSON object), parsed once from the header
+    tracker_config: Mapping[str, Any]
     keyframe_ids: tuple[int, ...]  # order of the per-keyframe tensors
     cache_keyframe_ids: tuple[int, ...]  # order of the keyframes along the cache's token axis
     generation: int
@@ -118,6 +119,11 @@ class MapInfo:
     @property
     def layout(self) -> CacheLayout:
         return self.backend.layout
+
+    @property
+    def tracker_config_json(self) -> str:
+        """The saved tracker configuration as JSON text (keys sorted)."""
+        return json.dumps(dict(self.tracker_config), sort_keys=True)
 
     @property
     def fingerprint(self) -> str:
@@ -532,7 +538,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
     cache_keyframe_ids = _decode_ids(fields, "cache_keyframe_ids")
     if set(cache_keyframe_ids) != set(keyframe_ids):
         raise fields.fail("the cache's keyframe ids differ from the keyframes' ids")
-    fields.json("tracker_config", dict)  # the tracker parses it later: fail here, typed
+    tracker_config = fields.json("tracker_config", dict)  # parsed once, here: fail typed
     camera, camera_source = _decode_camera(fields)
     layer_lengths = _decode_layer_lengths(
         fields, backend.layout, len(cache_keyframe_ids) * tokens_per_frame, version
@@ -546,7 +552,7 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         dtype=dtype,
         tokens_per_frame=tokens_per_frame,
         mode=_decode_mode(fields),
-        tracker_config_json=fields.text("tracker_config"),
+        tracker_config=MappingProxyType(tracker_config),
         keyframe_ids=keyframe_ids,
         cache_keyframe_ids=cache_keyframe_ids,
         generation=_decode_generation(fields),
