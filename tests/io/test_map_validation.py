@@ -107,16 +107,9 @@ def test_a_gauge_rotation_that_is_not_one_is_refused(tmp_path: Path) -> None:
 
 def test_an_unknown_mode_is_a_map_error(tmp_path: Path) -> None:
     path = saved(tmp_path)
-    edit_metadata(path, mode="banana")
+    edit_metadata(path, tracker_config=json.dumps({"mode": "banana"}))
     with pytest.raises(MapFormatError, match="mode must be one of"):
         read_map_info(path)
-
-
-def test_a_header_mode_that_contradicts_the_saved_config_is_a_map_error(tmp_path: Path) -> None:
-    path = saved(tmp_path)  # saved in object mode, with an object-mode config
-    edit_metadata(path, mode="scene")
-    with pytest.raises(MapFormatError, match="header says scene mode"):
-        refused_for_tracker(path)
 
 
 @pytest.mark.parametrize("side", [224, 518])
