@@ -29,9 +29,7 @@ from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.backends.frame_checks import reads_quantized_caches
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import (
-    StateError,
-)
+from kvtracker_sdk.errors import StateError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.exports import map_export
 from kvtracker_sdk.io.map_file.compatibility import ConfigOverride, TrackerRequest
