@@ -10,21 +10,10 @@ import functools
 import re
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "kvtracker_sdk"
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "kvtracker_sdk"
+CODE_FOLDERS = ("kvtracker_sdk", "tests", "benchmarks", "examples")
 MAX_FUNCTION_LINES = 60  # def line to last line, docstring included; the CLI's commands are exempt
-
-# Functions still over the limit in the parts being split in parallel (tracking/, io/), as
-# (file name, function name): file names, not paths, because those files are moving. The lead
-# empties this list when those branches merge; nothing may be added to it.
-LONG_FUNCTIONS_BEING_SPLIT = {
-    ("tracker.py", "push_frame"),
-    ("map_builder.py", "build_map"),
-    ("frame_input.py", "prepare"),
-    ("map_file.py", "_saved_info"),
-}
-
-# The same for modules that still name an issue (file names; same branches, same rule).
-MODULES_NAMING_ISSUES_BEING_REWORDED = {"map_file.py"}
 
 ISSUE_REFERENCE = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
 
@@ -32,6 +21,11 @@ ISSUE_REFERENCE = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
 @functools.cache
 def _modules() -> tuple[Path, ...]:
     return tuple(sorted(PACKAGE.rglob("*.py")))
+
+
+def _code() -> tuple[Path, ...]:
+    """Every Python file of the repository's code: the package, tests, benchmarks, examples."""
+    return tuple(sorted(p for folder in CODE_FOLDERS for p in (ROOT / folder).rglob("*.py")))
 
 
 @functools.cache
@@ -58,31 +52,16 @@ def test_no_function_outside_the_cli_is_over_60_lines() -> None:
         f"{path.relative_to(PACKAGE)}:{name} ({lines} lines)"
         for path, name, lines in _long_functions()
         if "cli" not in path.relative_to(PACKAGE).parts
-        and (path.name, name) not in LONG_FUNCTIONS_BEING_SPLIT
     ]
     assert found == [], f"split these into named pieces of <= {MAX_FUNCTION_LINES} lines: {found}"
 
 
-def test_the_long_function_exceptions_are_still_long() -> None:
-    """An exception that is no longer needed is removed, so the list only ever shrinks."""
-    still_long = {(path.name, name) for path, name, _ in _long_functions()}
-    no_longer_long = LONG_FUNCTIONS_BEING_SPLIT - still_long
-    assert no_longer_long == set(), f"remove from LONG_FUNCTIONS_BEING_SPLIT: {no_longer_long}"
-
-
-def test_no_module_names_an_issue() -> None:
-    """Issue numbers go stale: code and docstrings say what and why instead."""
+def test_no_code_names_an_issue() -> None:
+    """Issue numbers go stale: code, tests and docstrings say what and why instead."""
     found = [
-        f"{path.relative_to(PACKAGE)}:{number}: {line.strip()}"
-        for path in _modules()
-        if path.name not in MODULES_NAMING_ISSUES_BEING_REWORDED
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+        for path in _code()
         for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
         if ISSUE_REFERENCE.search(line)
     ]
     assert found == [], found
-
-
-def test_the_issue_exceptions_still_name_an_issue() -> None:
-    naming = {p.name for p in _modules() if ISSUE_REFERENCE.search(p.read_text(encoding="utf-8"))}
-    reworded = MODULES_NAMING_ISSUES_BEING_REWORDED - naming
-    assert reworded == set(), f"remove from MODULES_NAMING_ISSUES_BEING_REWORDED: {reworded}"

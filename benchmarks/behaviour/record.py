@@ -110,6 +110,9 @@ ALLOWED_FIELDS = frozenset({
     "tracker_config",
     "mode",
     "keyframe_encoding",
+    # format version 4: compact maps' keyframe images stored as PNG (checked decoded instead)
+    "keyframe_image_codec",
+    "keyframe_image_bytes",
 })
 # Header fields holding a JSON object compared entry by entry (``field.entry``).
 FLATTENED_FIELDS = frozenset({"tensor_sha256"})

@@ -168,11 +168,10 @@ class Tracker(EventSource):
         prepared its way, and not extended; ``rebuild=True`` lets new keyframes extend it (also
         prepared its way). Extending it otherwise raises ``MapPreprocessingError``.
         ``camera``: this session's intrinsics; when they differ from the map's saved ones a
-        WARNING ``map_camera_mismatch`` is logged (``persistence.check_map_camera``)."""
+        WARNING ``map_camera_mismatch`` is logged (``persistence.load_tracker_map``)."""
         loaded = persistence.load_tracker_map(
             path, backend.info, config, backend_preprocessing=family_preprocessing(
-                backend.info.family, getattr(backend, "preprocessing", None)).name)
-        persistence.check_map_camera(loaded.info, camera, str(path))
+                backend.info.family, getattr(backend, "preprocessing", None)).name, camera=camera)
         tracker = cls(loaded.config, backend, camera=camera)
         tracker._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
         return tracker
@@ -306,8 +305,7 @@ class Tracker(EventSource):
             return
         loaded = persistence.load_tracker_map(
             map, self.backend.info, self._config,
-            backend_preprocessing=self._preparer.preprocessing.name)
-        persistence.check_map_camera(loaded.info, self._camera, str(map))
+            backend_preprocessing=self._preparer.preprocessing.name, camera=self._camera)
         self._install_loaded_map(loaded.keyframe_map, rebuild=rebuild)
 
     def reset(self) -> None:

@@ -1,4 +1,4 @@
-"""The object keyframe rules' table (issue 15's orbit table): the numbers the benchmarks README and the object guide show."""
+"""The object keyframe rules' table (the orbit table): the numbers the benchmarks README and the object guide show."""
 
 from __future__ import annotations
 

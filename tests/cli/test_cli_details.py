@@ -1,4 +1,4 @@
-"""Smaller end-of-run and usage details of the CLI (issue 12, item 16): progress while weights are
+"""Smaller end-of-run and usage details of the CLI: progress while weights are
 exported, ``--bbox`` in scene mode, stale outputs of a reused ``--out``, global options after the
 command, honest plot units, and FIFOs that must be refused instead of read."""
 

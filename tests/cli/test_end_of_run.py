@@ -1,5 +1,5 @@
 """The end of a run keeps the user's work: without the [viz] extra, after a bad frame, after
-Ctrl-C; and output locations are checked before the first frame (issue 12, items 13-15).
+Ctrl-C; and output locations are checked before the first frame.
 
 In-process runs use the simulated backend over PNG frames of its orbit (``simulated_frames``,
 ``simulated_backend`` in conftest.py); the one subprocess test uses the tiny golden Pi3.

@@ -90,7 +90,7 @@ def test_map_info_and_relocalising_against_the_saved_map(tracked: Path, tum: Pat
     assert facts["fingerprint"] == run["backend"]["fingerprint"]
     assert facts["keyframes"] == run["map"]["keyframes"] and facts["resolution_hw"] == [196, 252]
     assert facts["preprocessing"] == "pi3-kvtracker-v1"
-    assert facts["cache_dtype"] == "int8" and facts["format_version"] == 3  # --cache-dtype int8
+    assert facts["cache_dtype"] == "int8" and facts["format_version"] == 4  # --cache-dtype int8
     assert facts["keyframe_encoding"] == "compact-xyz"  # Pi3's points: float16 xyz
     text = invoke("map", "info", tracked / "desk.kvmap")
     assert "fingerprint " + facts["fingerprint"] in text.stdout

@@ -40,7 +40,7 @@ def base_files(folder: Path) -> dict[tuple[str, bool], bytes]:
     for storage, compact in BASES:
         path = folder / f"{storage}-{int(compact)}.kvmap"
         save_map(path, make_map(storage=storage), backend_info=backend_info(),
-                 tracker_config_json=TRACKER_CONFIG, mode="scene", compact_keyframes=compact)
+                 tracker_config_json=TRACKER_CONFIG, mode="object", compact_keyframes=compact)
         files[(storage, compact)] = path.read_bytes()
     return files
 

@@ -94,7 +94,7 @@ def test_a_whole_int8_map_is_1_9x_smaller_than_bf16_and_loads_back(tmp_path: Pat
         path = tmp_path / f"{name}.kvmap"
         save_map(path, keyframe_map, backend_info=backend_info(layers=8, heads=6, head_dim=64,
                  dtype=str(dtype).removeprefix("torch.")), tracker_config_json=TRACKER_CONFIG,
-                 mode="scene")  # fmt: skip
+                 mode="object")  # fmt: skip
         sizes[name] = path.stat().st_size
         if storage is not None:
             assert compact_maps_match(load_map(path).keyframe_map, keyframe_map)
@@ -118,6 +118,6 @@ def test_a_bad_point_scale_is_a_typed_error(tmp_path: Path) -> None:
         for kf in keyframe_map.keyframes))  # fmt: skip
     path = tmp_path / "da3.kvmap"
     save_map(path, da3, backend_info=backend_info(), tracker_config_json=TRACKER_CONFIG,
-             mode="scene")  # fmt: skip
+             mode="object")  # fmt: skip
     assert read_map_info(path).keyframe_encoding == "compact-depth"
     assert compact_maps_match(load_map(path).keyframe_map, da3)

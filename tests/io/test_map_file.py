@@ -80,7 +80,7 @@ def test_round_trip_keeps_every_array_and_scalar(tmp_path: Path, dtype: str) -> 
     loaded = load_map(path)
     assert maps_equal(loaded.keyframe_map, make_map(dtype=DTYPES[dtype]))
     assert loaded.keyframe_map.cache.dtype == DTYPES[dtype]
-    assert loaded.tracker_config_json == TRACKER_CONFIG and loaded.mode == "object"
+    assert loaded.info.tracker_config == json.loads(TRACKER_CONFIG) and loaded.mode == "object"
     assert os.listdir(tmp_path) == [path.name]  # no temporary file left behind
 
 
@@ -194,7 +194,7 @@ def test_cache_comes_back_in_the_expected_backends_dtype(tmp_path: Path) -> None
     assert torch.equal(cache.keys(0), make_map().cache.keys(0).to(torch.bfloat16))
 
 
-@pytest.mark.parametrize("version", ["0", "4", "17"])
+@pytest.mark.parametrize("version", ["0", "5", "17"])
 def test_unsupported_versions_name_both_versions(tmp_path: Path, version: str) -> None:
     path = saved(tmp_path)
     path.write_bytes(
@@ -205,7 +205,7 @@ def test_unsupported_versions_name_both_versions(tmp_path: Path, version: str) -
     with pytest.raises(MapVersionError) as caught:
         read_map_info(path)
     assert f"version {version} is too {'old' if version == '0' else 'new'}" in str(caught.value)
-    assert "1 to 3" in str(caught.value)  # this SDK's range
+    assert "1 to 4" in str(caught.value)  # this SDK's range
 
 
 def test_an_edited_header_field_is_caught_by_the_header_checksum(tmp_path: Path) -> None:

@@ -133,7 +133,7 @@ def _metadata_edits() -> list[tuple[str, str, Any]]:
     """(name, metadata key, new value or None to delete)."""
     layout = {"block_indices": [1, 3, 5, 7], "num_heads": 2, "head_dim": 8, "tokens_per_frame": 11}
     edits: list[tuple[str, str, Any]] = [
-        (f"version={v}", "format_version", v) for v in ("0", "4", "-1", "1.0", "", "9" * 40, "١")
+        (f"version={v}", "format_version", v) for v in ("0", "5", "-1", "1.0", "", "9" * 40, "١")
     ]
     # a compact keyframe encoding on a version-1 map, a "full" written out, an unknown one
     edits += [(f"keyframe_encoding={v}", "keyframe_encoding", v)

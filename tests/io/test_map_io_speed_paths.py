@@ -36,7 +36,7 @@ def test_a_saved_map_carries_the_digests_of_its_tensors(tmp_path: Path) -> None:
     keyframe_map = make_map(seed=3)
     info = save_map(tmp_path / "m.kvmap", keyframe_map, backend_info=backend_info(),
                     tracker_config_json="{}", mode="scene")  # fmt: skip
-    tensors, _ = map_to_tensors(keyframe_map, info.resolution)
+    tensors, _, _ = map_to_tensors(keyframe_map, info.resolution)
     expected = sha256_of(tensors)
     assert info.tensor_sha256 == expected  # what save returned ...
     assert read_map_info(tmp_path / "m.kvmap").tensor_sha256 == expected  # ... and wrote

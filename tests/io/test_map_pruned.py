@@ -105,7 +105,7 @@ def test_a_pruned_int8_map_round_trips(tmp_path: Path) -> None:
     quantized = replace(keyframe_map, cache=keyframe_map.cache.to(storage="int8"))
     path = save(tmp_path / "pruned_int8.kvmap", quantized)
     info = read_map_info(path)
-    assert info.format_version == 3 and info.dtype == "int8" and info.layer_lengths is not None
+    assert info.format_version == 4 and info.dtype == "int8" and info.layer_lengths is not None
     loaded = load_map(path).keyframe_map
     assert loaded.cache.pruned and loaded.cache.quantized and compact_maps_match(loaded, quantized)
     assert info.cache_nbytes == quantized.cache.nbytes < keyframe_map.cache.nbytes

@@ -25,7 +25,7 @@ from kvtracker_sdk.errors import MapFormatError
 from kvtracker_sdk.eval.cache_deviation import tum_frames
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
-from kvtracker_sdk.io.map_file.map_schema import FORMAT_VERSION, OLDEST_READABLE_VERSION
+from kvtracker_sdk.io.map_file.map_schema import FORMAT_VERSION
 from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.types import HeadSet
 from tests.helpers import PROJECT_ROOT, shared_path
@@ -47,7 +47,7 @@ def _save(
 ) -> Path:
     keyframe_map = make_map(dtype=getattr(torch, dtype), storage=storage)
     save_map(path, keyframe_map, backend_info=backend_info(dtype=dtype),
-             tracker_config_json=TRACKER_CONFIG, mode="scene", compact_keyframes=compact)  # fmt: skip
+             tracker_config_json=TRACKER_CONFIG, mode="object", compact_keyframes=compact)  # fmt: skip
     return path
 
 
@@ -55,15 +55,15 @@ def _save(
 def test_a_quantised_map_round_trips_with_its_cache_bit_for_bit(tmp_path: Path, storage: str) -> None:
     path = _save(tmp_path / "q.kvmap", storage)
     info = read_map_info(path)
-    assert info.format_version == 3 and info.dtype == storage and info.quantized
+    assert info.format_version == FORMAT_VERSION and info.dtype == storage and info.quantized
     assert info.keyframe_encoding == "compact-xyz"  # the factory's points are not pinhole rays
     loaded = load_map(path).keyframe_map
     assert loaded.cache.storage == storage and loaded.cache.dtype == torch.float32
     # cache, images, masks, poses bit for bit; confidences / points within the stated bounds
     assert compact_maps_match(loaded, make_map(storage=storage))
     assert not maps_equal(loaded, make_map(storage=storage))  # the points did change
-    full = _save(tmp_path / "full.kvmap", storage, compact=False)  # the earlier version-2 layout
-    assert read_map_info(full).format_version == 2
+    full = _save(tmp_path / "full.kvmap", storage, compact=False)  # the full keyframe payload
+    assert read_map_info(full).keyframe_encoding == "full"
     assert maps_equal(load_map(full).keyframe_map, make_map(storage=storage))
 
 
@@ -85,25 +85,11 @@ def test_a_backend_dtype_changes_the_compute_dtype_not_the_stored_data(tmp_path:
     assert cache.to(dtype=torch.float32).equals(make_map(storage="int8").cache)
 
 
-def test_every_older_format_version_still_loads(tmp_path: Path) -> None:
-    dense = _save(tmp_path / "dense.kvmap")
-    assert read_map_info(dense).format_version == 1  # dense maps stay readable by older SDKs
-    assert read_map_info(dense).keyframe_encoding == "full"
-    # a version-2 quantised map with the full keyframe payload (as saved before version 3)
-    older = _save(tmp_path / "v2.kvmap", "int8", compact=False)
-    header = json.loads(older.read_bytes()[8 : 8 + int.from_bytes(older.read_bytes()[:8], "little")])
-    assert header["__metadata__"]["format_version"] == "2" and "keyframes.local_points" in header
-    assert "keyframe_encoding" not in header["__metadata__"]
-    assert maps_equal(load_map(older).keyframe_map, make_map(storage="int8"))
-    for version in range(OLDEST_READABLE_VERSION, FORMAT_VERSION + 1):
-        relabelled = tmp_path / f"v{version}.kvmap"
-        relabelled.write_bytes(rewrite_header(
-            dense.read_bytes(),
-            lambda h, v=version: h["__metadata__"].update(format_version=str(v)),
-        ))  # fmt: skip
-        loaded = load_map(relabelled)
-        assert loaded.info.format_version == version
-        assert maps_equal(loaded.keyframe_map, make_map())
+def test_every_map_is_written_as_the_current_version(tmp_path: Path) -> None:
+    """Older versions load (``test_map_versions.py``); the writer writes the current one only."""
+    for name, storage, compact in (("dense", None, None), ("full", "int8", False), ("q", "int8", None)):
+        info = read_map_info(_save(tmp_path / f"{name}.kvmap", storage, compact=compact))
+        assert info.format_version == FORMAT_VERSION
 
 
 def test_a_quantised_cache_needs_version_2_and_its_scale_description(tmp_path: Path) -> None:

@@ -67,7 +67,7 @@ def test_saved_files_read_back_with_safetensors_itself(tmp_path: Path) -> None:
         path, keyframe_map, backend_info=backend_info(dtype="bfloat16"),
         tracker_config_json=TRACKER_CONFIG, mode="object",
     )  # fmt: skip
-    expected, _ = map_to_tensors(keyframe_map, keyframe_map.resolution)
+    expected, _, _ = map_to_tensors(keyframe_map, keyframe_map.resolution)
     with safe_open(str(path), framework="pt") as reader:
         assert sorted(reader.keys()) == sorted(expected)
         for name, tensor in expected.items():

@@ -22,9 +22,9 @@ import pytest
 
 from kvtracker_sdk.errors import MapCorruptedError, MapError, MapFormatError
 from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.io.map_file.compatibility import TrackerRequest, map_compatibility
 from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info, save_map
 from kvtracker_sdk.io.map_file.map_schema import MAX_GENERATION
-from kvtracker_sdk.tracking.persistence.tracker_maps import resolve_config
 from tests.io.map_factory import (
     TRACKER_CONFIG,
     backend_info,
@@ -44,6 +44,13 @@ def saved(folder: Path, *, config: str = TRACKER_CONFIG, **options: Any) -> Path
         mode="object",
     )  # fmt: skip
     return path
+
+
+def refused_for_tracker(path: Path) -> None:
+    """Raise what loading ``path`` into a tracker with its saved config raises (header only)."""
+    info = read_map_info(path)
+    answer = map_compatibility(info, backend_info(), tracker=TrackerRequest(), source=str(path))
+    answer.raise_if_refused()
 
 
 def edit_tensor(path: Path, name: str, edit: Callable[[np.ndarray], None]) -> None:
@@ -100,16 +107,9 @@ def test_a_gauge_rotation_that_is_not_one_is_refused(tmp_path: Path) -> None:
 
 def test_an_unknown_mode_is_a_map_error(tmp_path: Path) -> None:
     path = saved(tmp_path)
-    edit_metadata(path, mode="banana")
+    edit_metadata(path, tracker_config=json.dumps({"mode": "banana"}))
     with pytest.raises(MapFormatError, match="mode must be one of"):
         read_map_info(path)
-
-
-def test_a_header_mode_that_contradicts_the_saved_config_is_a_map_error(tmp_path: Path) -> None:
-    path = saved(tmp_path)  # saved in object mode, with an object-mode config
-    edit_metadata(path, mode="scene")
-    with pytest.raises(MapFormatError, match="header says scene mode"):
-        resolve_config(read_map_info(path), None, str(path))
 
 
 @pytest.mark.parametrize("side", [224, 518])
@@ -119,7 +119,7 @@ def test_a_saved_resolution_that_cannot_give_the_keyframes_is_refused(
     config = json.dumps({"mode": "object", "resolution": side})
     path = saved(tmp_path, config=config)  # 28x42 keyframes come from a side of 28 to 42 px
     with pytest.raises(MapFormatError, match=f"resolution {side}, which cannot give"):
-        resolve_config(read_map_info(path), None, str(path))
+        refused_for_tracker(path)
 
 
 @pytest.mark.parametrize("generation", [str(MAX_GENERATION + 1), "9" * 18])

@@ -1,6 +1,6 @@
 """Object tracking from one box: the tracker predicts the object's region in every next frame.
 
-Issue 15's "Done when" on the simulated backend: a hand-held walk around the simulated sphere
+Object mode's promises on the simulated backend: a hand-held walk around the simulated sphere
 (720 frames at 30 Hz, 1.5 s of "camera covered" at frames 400-445), given the true silhouette's
 box on frame 0 only, against the same walk given the true box with every frame. The true box is
 the sphere's exact silhouette box (``SimulatedScene.object_box``), so frames render flat and

@@ -150,8 +150,8 @@ def test_loaded_map_relocalises_in_the_saved_world_frame(backend: SimulatedBacke
     # same cache, same gauge: the same poses as the session that built the map
     for ours, theirs in zip(session.results[:2], reference.results[:2], strict=True):
         np.testing.assert_allclose(ours.pose.T_world_cam, theirs.pose.T_world_cam, atol=1e-9)
-    # the keyframe interval counts from the first confident frame of the new session (issue 12,
-    # item 4: it used to make that frame a keyframe at once); ids continue after the map's
+    # the keyframe interval counts from the first confident frame of the new session (it
+    # used to make that frame a keyframe at once); ids continue after the map's
     assert [r.frame_index for r in session.results if r.is_keyframe] == [22]
     assert session.results[22].keyframe_id == 4
     assert second.map_status.keyframe_ids == (0, 1, 2, 3, 4)

@@ -1,4 +1,4 @@
-"""The tracker after a failure (issue 12, items 2-7): backend exceptions and non-finite output never
+"""The tracker after a failure: backend exceptions and non-finite output never
 leave ``push_frame``, failed passes back off and are reported once, counters never go back, the
 state is read in one piece, and nothing waiting for a rebuild holds up the camera thread."""
 

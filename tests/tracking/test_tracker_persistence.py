@@ -140,7 +140,7 @@ def test_a_loaded_map_relocalises_then_grows_in_the_saved_world_frame(tmp_path: 
     assert session.moves()[0] == ("RELOCALIZING", "TRACKING", "RELOCALIZED", 2)  # 3rd frame
     assert [r.pose_valid for r in session.results[:3]] == [False, False, True]
     # new keyframes: full rebuilds from the stored keyframe images, ids after the saved ones; the
-    # interval counts from the first confident frame (issue 12 item 4: not a keyframe at once)
+    # interval counts from the first confident frame (not a keyframe at once)
     assert [r.frame_index for r in session.results if r.is_keyframe] == [42, 82]
     assert session.results[42].keyframe_id == 4 and final_ids[:5] == (0, 1, 2, 3, 4)
     rebuild = session.maps[0]
@@ -255,7 +255,7 @@ def test_initialize_with_a_map_relocalises_a_running_tracker(sim_saved: Saved) -
         assert tracker.get_pose() is None and session.maps[-1].cause == "loaded"
         assert tracker.config.relocalization.recover_after == 2  # the tracker keeps its config
         drive(tracker, backend, start=70, stop=72, session=session)
-        # relocalised; the keyframe interval counts from here (no keyframe at once: issue 12)
+        # relocalised; the keyframe interval counts from here (no keyframe at once)
         assert tracker.state is _S.TRACKING and session.results[-1].keyframe_id is None
         tracker.initialize()
         assert (tracker.state, tracker.reason, tracker.keyframe_map) == (_S.INIT, _R.RESET, None)

@@ -1,5 +1,5 @@
 """Maps remember which preprocessing made their frames; old maps track, and are not extended
-across preprocessings unless asked (issue 11)."""
+across preprocessings unless asked."""
 
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ def _push(tracker: Tracker, backend: SimulatedBackend, start: int, stop: int) ->
 
 @pytest.fixture(scope="module")
 def old_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A map as saved before issue 11: frames prepared the legacy way, no header field."""
+    """A map as saved by earlier SDKs: frames prepared the legacy way, no header field."""
     path = tmp_path_factory.mktemp("legacy") / "old.kvmap"
     backend = _backend()
     with pytest.MonkeyPatch.context() as patch:

@@ -128,7 +128,7 @@ def test_eviction_keeps_the_budget_and_keyframe_zero(
 
 # The loss lasts frames 200-299. "reset"/"new_map" drop the map when relocalisation times out
 # (frame 232); a new map must then start from a frame as confident as the lost map's were in
-# absolute terms (issue 12, item 1): bootstraps from frames taken during the loss are rejected
+# absolute terms: bootstraps from frames taken during the loss are rejected
 # (retried every `retry_after_frames` = 15 frames), the first one after it is accepted.
 @pytest.mark.parametrize(
     ("policy", "expected"),

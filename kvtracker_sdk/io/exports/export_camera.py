@@ -19,7 +19,6 @@ only a given calibration of the model images, or the fit, is used.
 from __future__ import annotations
 
 import enum
-import json
 
 import numpy as np
 
@@ -110,9 +109,5 @@ def _stored_camera(info: MapInfo | None) -> tuple[Camera, IntrinsicsSource | Non
 def _crops_keyframes(info: MapInfo) -> bool:
     if info.mode != "object":
         return False
-    try:
-        config = json.loads(info.tracker_config_json)
-    except ValueError:
-        return True  # unknown: do not assume whole frames
-    obj = config.get("object") if isinstance(config, dict) else None
+    obj = info.tracker_config.get("object")  # the header's config, parsed when it was read
     return not isinstance(obj, dict) or obj.get("preprocessing", "mask") != "mask"

@@ -5,7 +5,8 @@ A quantised cache makes the K/V about half of a bf16 map's; the keyframe arrays 
 third of the file and more. A compact map stores them as (H x W pixels, N keyframes):
 
     tensor                         dtype  shape            content
-    keyframes.image                uint8  [N, H, W, 3]     unchanged: rebuilds re-run the network on it
+    keyframes.image                uint8  [N, H, W, 3]     exact (rebuilds re-run the network on it);
+                                                           PNG files from version 4 (image_codec.py)
     keyframes.mask_bits            uint8  [N, ceil(HW/8)]  the 0/1 mask, 8 pixels a byte (np.packbits)
     keyframes.confidence_unorm16   uint16 [N, H, W]        round(confidence * 65535): |error| <= 7.7e-6
     keyframes.points_scale         F32    [N]              a power of two per keyframe (below)

@@ -30,6 +30,8 @@ from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from enum import Enum
 from pathlib import Path
+from types import MappingProxyType
+from typing import Any
 
 import torch
 
@@ -37,16 +39,15 @@ from kvtracker_sdk._version import __version__
 from kvtracker_sdk.cache.backend_info import BackendInfo
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackingMode
-from kvtracker_sdk.errors import (
-    BackendMismatchError,
-    MapError,
-    MapFormatError,
-    MapIOError,
-    MapModelMismatchError,
-)
+from kvtracker_sdk.errors import BackendMismatchError, MapError, MapFormatError, MapIOError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS, atomic_write
-from kvtracker_sdk.io.map_file.keyframe_codec import KEYFRAME_ENCODINGS
+from kvtracker_sdk.io.map_file.compatibility import (
+    MapCompatibility,
+    TrackerRequest,
+    map_compatibility,
+)
+from kvtracker_sdk.io.map_file.image_codec import PNG, RAW
 from kvtracker_sdk.io.map_file.map_format import (
     MapInfo,
     encode_metadata,
@@ -57,11 +58,9 @@ from kvtracker_sdk.io.map_file.map_format import (
 from kvtracker_sdk.io.map_file.map_reader import MapFile, open_map_file, read_map_tensors
 from kvtracker_sdk.io.map_file.map_schema import (
     CACHE_DTYPES,
-    DENSE_FORMAT_VERSION,
     FORMAT_NAME,
+    FORMAT_VERSION,
     MAX_GENERATION,
-    PRUNED_FORMAT_VERSION,
-    QUANTIZED_CACHE_DTYPES,
 )
 from kvtracker_sdk.io.map_file.map_tensors import (
     check_digests,
@@ -72,7 +71,7 @@ from kvtracker_sdk.io.map_file.map_tensors import (
 from kvtracker_sdk.io.map_file.safetensors_writer import write_safetensors
 from kvtracker_sdk.log import get_logger
 
-__all__ = ["LoadedMap", "MapInfo", "check_map_compatible", "load_map", "read_map_info", "save_map"]
+__all__ = ["LoadedMap", "MapInfo", "load_map", "read_map_info", "save_map"]
 
 _log = get_logger(__name__)
 PathLike = str | os.PathLike[str]
@@ -81,10 +80,13 @@ _PLACEHOLDER_DIGEST = "0" * 64  # a sha256 hex digest's length
 
 @dataclass(frozen=True, eq=False)
 class LoadedMap:
-    """A map read from a file: the map data, its header, and the tracker config it was saved with."""
+    """A map read from a file: the map data, its header, and the tracker config it was saved with.
+    ``compatibility``: the answer for the backend (and tracker request) it was loaded for; None
+    when loaded without one."""
 
     keyframe_map: KeyframeMap
     info: MapInfo
+    compatibility: MapCompatibility | None = None
 
     @property
     def tracker_config_json(self) -> str:
@@ -105,14 +107,9 @@ def _dtype_name(storage: str) -> str:
     return name
 
 
-def _saved_info(
-    keyframe_map: KeyframeMap,
-    backend_info: BackendInfo,
-    tracker_config_json: str,
-    mode: str,
-    sdk_version: str,
-) -> MapInfo:
-    """The header of ``keyframe_map`` (checksums still empty), after checking it can be loaded."""
+def _savable_resolution(keyframe_map: KeyframeMap, backend_info: BackendInfo) -> tuple[int, int]:
+    """The (H, W) the map's keyframes and cache were made at, after checking that the backend
+    made the cache and that the keyframes and cache agree."""
     cache = keyframe_map.cache
     if keyframe_map.num_keyframes == 0:
         raise MapFormatError("cannot save map: it has no keyframes")
@@ -133,35 +130,54 @@ def _saved_info(
             f"cannot save map: keyframe ids {list(keyframe_ids)} do not match the cache's "
             f"{list(cache.keyframe_ids)}"
         )
-    config = loads_strict(tracker_config_json, "cannot save map: the tracker config")
-    if not isinstance(config, dict):
-        raise MapFormatError("cannot save map: the tracker config must be a JSON object")
-    mode = mode.value if isinstance(mode, Enum) else mode
-    # what the loader refuses is refused here too: the SDK never writes a map it cannot load
-    if str(mode) not in {m.value for m in TrackingMode}:
-        raise MapFormatError(f"cannot save map: mode {mode!r} is not one of scene, object")
     if not 0 <= keyframe_map.generation <= MAX_GENERATION:
         raise MapFormatError(
             f"cannot save map: generation {keyframe_map.generation} is outside [0, {MAX_GENERATION}]"
         )
     if problem := gauge_problem(keyframe_map.gauge):
         raise MapFormatError(f"cannot save map: {problem}")
-    dtype = _dtype_name(cache.storage)
+    return int(height), int(width)
+
+
+def _saved_config(tracker_config_json: str, mode: str | Enum) -> dict[str, Any]:
+    """The tracker config to store: a JSON object whose "mode" is ``mode`` (added when absent,
+    refused when it says another; the header keeps the mode there only)."""
+    config = loads_strict(tracker_config_json, "cannot save map: the tracker config")
+    if not isinstance(config, dict):
+        raise MapFormatError("cannot save map: the tracker config must be a JSON object")
+    mode = str(mode.value if isinstance(mode, Enum) else mode)
+    # what the loader refuses is refused here too: the SDK never writes a map it cannot load
+    if mode not in {m.value for m in TrackingMode}:
+        raise MapFormatError(f"cannot save map: mode {mode!r} is not one of scene, object")
+    if config.setdefault("mode", mode) != mode:
+        raise MapFormatError(
+            f"cannot save map: mode {mode!r}, but the tracker config says {config['mode']!r}"
+        )
+    return config
+
+
+def _saved_info(
+    keyframe_map: KeyframeMap,
+    backend_info: BackendInfo,
+    tracker_config_json: str,
+    mode: str,
+    sdk_version: str,
+) -> MapInfo:
+    """The header of ``keyframe_map`` (checksums still empty), after checking it can be loaded."""
+    cache = keyframe_map.cache
+    resolution = _savable_resolution(keyframe_map, backend_info)
+    config = _saved_config(tracker_config_json, mode)
     return MapInfo(
-        # the oldest version that holds this cache: a dense map stays readable by older SDKs
-        format_version=max(
-            QUANTIZED_CACHE_DTYPES.get(dtype, DENSE_FORMAT_VERSION),
-            PRUNED_FORMAT_VERSION if cache.pruned else DENSE_FORMAT_VERSION,
-        ),
+        format_version=FORMAT_VERSION,
         sdk_version=sdk_version,
         created_utc=datetime.now(timezone.utc),
         backend=backend_info,
-        resolution=(int(height), int(width)),
-        dtype=dtype,
+        resolution=resolution,
+        dtype=_dtype_name(cache.storage),
         tokens_per_frame=cache.tokens_per_frame,
-        mode=str(mode),
-        tracker_config_json=tracker_config_json,
-        keyframe_ids=keyframe_ids,
+        mode=config["mode"],
+        tracker_config=MappingProxyType(config),
+        keyframe_ids=keyframe_map.keyframe_ids,
         cache_keyframe_ids=cache.keyframe_ids,
         generation=keyframe_map.generation,
         gauge=keyframe_map.gauge,
@@ -177,8 +193,8 @@ def _saved_info(
     )
 
 
-# safetensors' own temporary name (``save_file`` of SDK versions before issue 12 wrote one beside
-# the map and renamed it; a killed save left it behind)
+# safetensors' own temporary name (``save_file``, which earlier SDK versions saved with, wrote one
+# beside the map and renamed it; a killed save left it behind)
 _SAFETENSORS_TEMPORARY = re.compile(r"\.tmp[A-Za-z0-9]{6}")
 
 
@@ -218,8 +234,9 @@ def save_map(
     the tracking mode ("scene", "object"); ``camera`` the session's input-image intrinsics
     (optional; ``camera_source`` says where they came from). The cache is snapshotted under its
     lock. ``compact_keyframes`` stores the keyframes' masks, confidences and points compactly
-    (``io/map_file/keyframe_codec.py``: float16 points, format version 3); None (default) does so exactly
-    when the cache is quantised, so a dense map keeps them bit for bit. If anything fails,
+    (``io/map_file/keyframe_codec.py``: float16 points) and their images as PNG files when that
+    is smaller (``io/map_file/image_codec.py``: lossless); None (default) does so exactly when
+    the cache is quantised, so a dense map keeps its points bit for bit. If anything fails,
     ``path`` still holds its previous content and no temporary file remains.
     """
     target = Path(path)
@@ -227,11 +244,14 @@ def save_map(
     info = replace(info, camera=camera, camera_source=camera_source if camera else None)
     if compact_keyframes is None:
         compact_keyframes = keyframe_map.cache.quantized
-    tensors, encoding = map_to_tensors(keyframe_map, info.resolution, compact=compact_keyframes)
+    tensors, encoding, image_bytes = map_to_tensors(
+        keyframe_map, info.resolution, compact=compact_keyframes
+    )
     info = replace(
         info,
         keyframe_encoding=encoding,
-        format_version=max(info.format_version, KEYFRAME_ENCODINGS[encoding]),
+        image_codec=RAW if image_bytes is None else PNG,
+        image_bytes=image_bytes,
         tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
     )
     # one pass over the data: the digests are computed on other threads while it is written,
@@ -269,63 +289,33 @@ def read_map_info(path: PathLike) -> MapInfo:
         return _read_header(file)[0]
 
 
-def _describe(backend: BackendInfo) -> str:
-    return f"model {backend.model!r} (family {backend.family}, fingerprint {backend.fingerprint})"
-
-
-def check_map_compatible(
-    info: MapInfo, backend: BackendInfo, *, resolution: tuple[int, int] | None = None
-) -> None:
-    """Raise MapModelMismatchError unless ``backend`` computes the function that made the map.
-
-    Family, config hash, weights fingerprint, cache layout and tokenisation must agree (the
-    runtime, device and dtype may differ); ``resolution`` (H, W), if given, must equal the map's.
-    """
-    saved = info.backend
-    differences = [
-        f"{what} {mine!r} vs {theirs!r}"
-        for what, mine, theirs in (
-            ("family", saved.family, backend.family),
-            ("config hash", saved.config_hash, backend.config_hash),
-            ("weights fingerprint", saved.weights_fingerprint, backend.weights_fingerprint),
-            ("cache layout", saved.layout, backend.layout),
-            ("patch size", saved.patch_size, backend.patch_size),
-            (
-                "extra tokens per frame",
-                saved.extra_tokens_per_frame,
-                backend.extra_tokens_per_frame,
-            ),
-            ("resolution", info.resolution, tuple(resolution or info.resolution)),
-        )
-        if mine != theirs
-    ]
-    if differences:
-        raise MapModelMismatchError(
-            f"map made by {_describe(saved)} at {info.resolution[0]}x{info.resolution[1]} cannot "
-            f"be used with {_describe(backend)}: " + "; ".join(differences) + " (map vs backend)"
-        )
-
-
 def load_map(
     path: PathLike,
     *,
     expected_backend: BackendInfo | None = None,
     expected_resolution: tuple[int, int] | None = None,
     verify_checksums: bool = True,
+    tracker: TrackerRequest | None = None,
 ) -> LoadedMap:
-    """Load the map at ``path``: header checks, model check, read through one descriptor,
+    """Load the map at ``path``: header checks, compatibility, read through one descriptor,
     checksums (``io.map_reader``).
 
-    With ``expected_backend`` the map must come from the same model (see
-    :func:`check_map_compatible`; checked before any tensor is read) and the cache is returned
-    in that backend's dtype (if it is a cache dtype) and on its device; ``expected_resolution``
-    (H, W) must match the map's. ``verify_checksums=False`` skips hashing the tensor data
-    (about twice as fast; the header and sizes are still checked).
+    With ``expected_backend`` the map must be able to run with it (see
+    :func:`~kvtracker_sdk.io.map_file.compatibility.map_compatibility`, asked with
+    ``expected_resolution`` (H, W) and ``tracker`` before any tensor is read; its first refusal is
+    raised) and the cache is returned in that backend's dtype (if it is a cache dtype) and on its
+    device. ``verify_checksums=False`` skips hashing the tensor data (faster; the
+    header and sizes are still checked).
     """
+    compatibility = None
     with open_map_file(path) as file:
         info, offsets = _read_header(file)
         if expected_backend is not None:
-            check_map_compatible(info, expected_backend, resolution=expected_resolution)
+            compatibility = map_compatibility(
+                info, expected_backend, resolution=expected_resolution, tracker=tracker,
+                source=str(path),
+            )
+            compatibility.raise_if_refused()
         tensors, cache, digests = read_map_tensors(file, info, offsets, verify=verify_checksums)
     source = file.source
     if verify_checksums:
@@ -337,4 +327,4 @@ def load_map(
         device = expected_backend.device
     keyframe_map = map_from_parts(tensors, cache, info, source, dtype=dtype, device=device)
     _log.info("map loaded", path=source, keyframes=info.num_keyframes, verified=verify_checksums)
-    return LoadedMap(keyframe_map=keyframe_map, info=info)
+    return LoadedMap(keyframe_map=keyframe_map, info=info, compatibility=compatibility)

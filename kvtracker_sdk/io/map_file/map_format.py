@@ -34,17 +34,22 @@ from kvtracker_sdk.errors import InputError, MapCorruptedError, MapFormatError, 
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.geometry.se3 import check_rigid
 from kvtracker_sdk.geometry.sim3 import Sim3
+from kvtracker_sdk.io.map_file.image_codec import PNG, RAW, max_png_bytes
 from kvtracker_sdk.io.map_file.keyframe_codec import FULL, KEYFRAME_ENCODINGS
 from kvtracker_sdk.io.map_file.map_schema import (
     CACHE_DTYPES,
     FORMAT_NAME,
     FORMAT_VERSION,
     GAUGE_SCALE_RANGE,
+    IMAGE_BYTES_FIELD,
+    IMAGE_CODEC_FIELD,
+    IMAGE_CODEC_VERSION,
     KEYFRAME_ENCODING_FIELD,
     LAYER_LENGTHS_FIELD,
     LEGACY_PREPROCESSING,
     MAX_GENERATION,
     MAX_WORLD_TRANSLATION,
+    MODE_IN_CONFIG_VERSION,
     OLDEST_READABLE_VERSION,
     PREPROCESSING_FIELD,
     PRUNED_FORMAT_VERSION,
@@ -72,9 +77,10 @@ _JSON_NAMES: dict[type, str] = {dict: "object", list: "array"}
 _MODES = frozenset(mode.value for mode in TrackingMode)
 _REQUIRED = (
     "format", "format_version", "sdk_version", "created_utc", "backend", "resolution", "dtype",
-    "layout", "mode", "tracker_config", "keyframe_ids", "cache_keyframe_ids", "generation",
+    "layout", "tracker_config", "keyframe_ids", "cache_keyframe_ids", "generation",
     "gauge", "user_metadata", "tensor_sha256", _DIGEST_KEY,
 )  # fmt: skip
+_MODE_FIELD = "mode"  # versions 1-3 only: version 4 keeps the mode in the tracker config
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +99,8 @@ class MapInfo:
     dtype: str  # cache storage name, a key of CACHE_DTYPES (int8 / float8_e4m3fn: quantised)
     tokens_per_frame: int
     mode: str  # tracking mode of the session that saved the map ("scene", "object")
-    tracker_config_json: str  # the tracker configuration, JSON text exactly as saved
+    # the tracker configuration saved with the map (a JSON object), parsed once from the header
+    tracker_config: Mapping[str, Any]
     keyframe_ids: tuple[int, ...]  # order of the per-keyframe tensors
     cache_keyframe_ids: tuple[int, ...]  # order of the keyframes along the cache's token axis
     generation: int
@@ -114,10 +121,19 @@ class MapInfo:
     keyframe_encoding: str = FULL
     # the world frame's units and axes (optional header "world"; absent = MapWorld())
     world: MapWorld = MapWorld()
+    # how the keyframe images are stored (version 4, io/map_file/image_codec.py): "raw" pixels,
+    # or "png" files of these lengths in bytes (keyframe order)
+    image_codec: str = RAW
+    image_bytes: tuple[int, ...] | None = None
 
     @property
     def layout(self) -> CacheLayout:
         return self.backend.layout
+
+    @property
+    def tracker_config_json(self) -> str:
+        """The saved tracker configuration as JSON text (keys sorted)."""
+        return json.dumps(dict(self.tracker_config), sort_keys=True)
 
     @property
     def fingerprint(self) -> str:
@@ -144,7 +160,7 @@ class MapInfo:
         """Name -> (safetensors dtype, shape) of every tensor this header declares."""
         return tensor_schema(
             self.layout, self.dtype, self.num_keyframes, self.tokens_per_frame, self.resolution,
-            self.layer_lengths, self.keyframe_encoding,
+            self.layer_lengths, self.keyframe_encoding, self.image_bytes,
         )  # fmt: skip
 
 
@@ -194,7 +210,6 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "resolution": _dumps(list(info.resolution)),
         "dtype": info.dtype,
         "layout": _dumps(layout),
-        "mode": info.mode,
         "tracker_config": info.tracker_config_json,
         "keyframe_ids": _dumps(list(info.keyframe_ids)),
         "cache_keyframe_ids": _dumps(list(info.cache_keyframe_ids)),
@@ -206,6 +221,11 @@ def encode_metadata(info: MapInfo) -> dict[str, str]:
         "tensor_sha256": _dumps(dict(info.tensor_sha256)),
         PREPROCESSING_FIELD: info.preprocessing,
     }
+    if info.format_version < MODE_IN_CONFIG_VERSION:
+        metadata[_MODE_FIELD] = info.mode
+    if info.image_codec != RAW:  # version 4: keyframe images as PNG files
+        metadata[IMAGE_CODEC_FIELD] = info.image_codec
+        metadata[IMAGE_BYTES_FIELD] = _dumps(list(info.image_bytes or ()))
     if info.layer_lengths is not None:  # optional: only pruned maps have it
         metadata[LAYER_LENGTHS_FIELD] = _dumps(list(info.layer_lengths))
     if info.keyframe_encoding != FULL:  # version 3: a compact keyframe payload
@@ -381,10 +401,22 @@ def _decode_gauge(fields: _Fields) -> Sim3:
     return gauge
 
 
-def _decode_mode(fields: _Fields) -> str:
-    mode = fields.text("mode")
+def _decode_mode(fields: _Fields, tracker_config: Mapping[str, Any], version: int) -> str:
+    """The tracking mode: the header field of versions 1-3, the tracker config's from version 4
+    (where a header field would be a second copy that could disagree)."""
+    mode: Any
+    if version < MODE_IN_CONFIG_VERSION:
+        if _MODE_FIELD not in fields.metadata:
+            raise fields.fail(f"header lacks required fields {[_MODE_FIELD]}")
+        mode, where = fields.text(_MODE_FIELD), "mode"
+    else:
+        if _MODE_FIELD in fields.metadata:
+            raise fields.fail(f"a version-{version} header keeps the mode in 'tracker_config' only")
+        mode, where = tracker_config.get(_MODE_FIELD), "tracker_config mode"
+        if not isinstance(mode, str):
+            raise fields.fail(f"{where} must be a string, got {str(mode)[:40]!r}")
     if mode not in _MODES:
-        raise fields.fail(f"mode must be one of {sorted(_MODES)}, got {mode[:40]!r}")
+        raise fields.fail(f"{where} must be one of {sorted(_MODES)}, got {mode[:40]!r}")
     return mode
 
 
@@ -494,6 +526,34 @@ def _decode_keyframe_encoding(fields: _Fields, version: int) -> str:
     return encoding
 
 
+def _decode_image_codec(
+    fields: _Fields, version: int, count: int, resolution: tuple[int, int]
+) -> tuple[str, tuple[int, ...] | None]:
+    """How the keyframe images are stored: raw unless the header names PNG (version 4), with
+    one file length per keyframe, each within what the writer can produce for the resolution."""
+    if IMAGE_CODEC_FIELD not in fields.metadata:
+        if IMAGE_BYTES_FIELD in fields.metadata:
+            raise fields.fail(f"'{IMAGE_BYTES_FIELD}' without '{IMAGE_CODEC_FIELD}'")
+        return RAW, None
+    codec = fields.text(IMAGE_CODEC_FIELD)
+    if codec != PNG:
+        raise fields.fail(f"unsupported '{IMAGE_CODEC_FIELD}' {codec[:40]!r} (known: {PNG!r})")
+    if version < IMAGE_CODEC_VERSION:
+        raise fields.fail(f"PNG keyframe images need format version >= {IMAGE_CODEC_VERSION}")
+    if IMAGE_BYTES_FIELD not in fields.metadata:
+        raise fields.fail(f"PNG keyframe images need the header field '{IMAGE_BYTES_FIELD}'")
+    raw, largest = fields.json(IMAGE_BYTES_FIELD, list), max_png_bytes(*resolution)
+    if len(raw) != count:
+        raise fields.fail(f"'{IMAGE_BYTES_FIELD}' must list {count} lengths, one per keyframe")
+    lengths = tuple(fields.integer(v, f"'{IMAGE_BYTES_FIELD}' entry", 1) for v in raw)
+    if max(lengths) > largest:
+        raise fields.fail(
+            f"'{IMAGE_BYTES_FIELD}' declares a PNG above the {largest} bytes of a "
+            f"{resolution[0]}x{resolution[1]} image"
+        )
+    return codec, lengths
+
+
 def _decode_cache_dtype(fields: _Fields, version: int) -> str:
     """The cache dtype; a quantised one needs version 2 and the scales' description."""
     dtype = fields.text("dtype")
@@ -532,21 +592,23 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
     cache_keyframe_ids = _decode_ids(fields, "cache_keyframe_ids")
     if set(cache_keyframe_ids) != set(keyframe_ids):
         raise fields.fail("the cache's keyframe ids differ from the keyframes' ids")
-    fields.json("tracker_config", dict)  # the tracker parses it later: fail here, typed
+    tracker_config = fields.json("tracker_config", dict)  # parsed once, here: fail typed
     camera, camera_source = _decode_camera(fields)
     layer_lengths = _decode_layer_lengths(
         fields, backend.layout, len(cache_keyframe_ids) * tokens_per_frame, version
     )
+    resolution = _decode_resolution(fields, backend, tokens_per_frame)
+    image_codec, image_bytes = _decode_image_codec(fields, version, len(keyframe_ids), resolution)
     return MapInfo(
         format_version=version,
         sdk_version=fields.text("sdk_version"),
         created_utc=_decode_created(fields),
         backend=backend,
-        resolution=_decode_resolution(fields, backend, tokens_per_frame),
+        resolution=resolution,
         dtype=dtype,
         tokens_per_frame=tokens_per_frame,
-        mode=_decode_mode(fields),
-        tracker_config_json=fields.text("tracker_config"),
+        mode=_decode_mode(fields, tracker_config, version),
+        tracker_config=MappingProxyType(tracker_config),
         keyframe_ids=keyframe_ids,
         cache_keyframe_ids=cache_keyframe_ids,
         generation=_decode_generation(fields),
@@ -560,6 +622,8 @@ def decode_metadata(metadata: Mapping[str, str], *, file_size: int, source: str)
         layer_lengths=layer_lengths,
         keyframe_encoding=_decode_keyframe_encoding(fields, version),
         world=_decode_world(fields),
+        image_codec=image_codec,
+        image_bytes=image_bytes,
     )
 
 

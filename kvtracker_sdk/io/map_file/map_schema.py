@@ -30,18 +30,25 @@ The gauge (raw frame of the cache -> world) and every other scalar live in the J
 
 Versions: 1 holds dense caches (float32, bfloat16, float16, float64). 2 adds quantised caches
 (dtype ``int8`` or ``float8_e4m3fn``, with the scale tensors above and the header field
-``cache_quantization``); a version-1 reader would misread them, so they are written as version 2.
-A dense map is still written as version 1, which every SDK since the format's start reads: the
-writer picks the oldest version that holds the map. Every version back to
-``OLDEST_READABLE_VERSION`` loads.
+``cache_quantization``); a version-1 reader would misread them. Up to version 3 the writer
+picked the oldest version that held the map (a dense map was version 1).
 
 Version 3 adds the compact keyframe payload of quantised maps (header field
 ``keyframe_encoding``, ``compact-xyz`` or ``compact-depth``; ``io/map_file/keyframe_codec.py``): the mask as
 bits, confidences as uint16 fixed point and the local points as float16 (or DA3-style depth
 plus per-column/per-row ray slopes) instead of the ``keyframes.mask``, ``.confidence`` and
 ``.local_points`` rows above, which a quantised map's K/V would otherwise leave at a third of its
-file. A dense map keeps the full payload (its points reload bit for bit) and stays version 1; a
-quantised map saved with ``compact_keyframes=False`` is still version 2.
+file. A dense map keeps the full payload (its points reload bit for bit).
+
+Version 4 stores the tracking mode once, as the tracker config's ``"mode"`` (versions 1-3 also
+had a header field ``mode``), and lets a compact map store its keyframe images as PNG files
+(``io/map_file/image_codec.py``), losslessly::
+
+    keyframes.image_png                uint8     [sum of lengths]        N PNG files end to end
+
+in place of ``keyframes.image``, with the header fields ``keyframe_image_codec`` (``png``) and
+``keyframe_image_bytes`` (each file's length, in keyframe order). Every map is written as
+version 4; every version back to ``OLDEST_READABLE_VERSION`` loads.
 """
 
 from __future__ import annotations
@@ -56,19 +63,22 @@ from kvtracker_sdk.io.map_file.keyframe_codec import FULL, compact_tensor_specs
 
 __all__ = [
     "CACHE_DTYPES",
-    "DENSE_FORMAT_VERSION",
     "QUANTIZATION_FIELD",
     "QUANTIZED_CACHE_DTYPES",
     "SCALE_CODE",
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "GAUGE_SCALE_RANGE",
+    "IMAGE_BYTES_FIELD",
+    "IMAGE_CODEC_FIELD",
+    "IMAGE_CODEC_VERSION",
     "MAX_WORLD_TRANSLATION",
     "KEYFRAME_ENCODING_FIELD",
     "LAYER_LENGTHS_FIELD",
     "LEGACY_PREPROCESSING",
     "MAX_GENERATION",
     "MAX_HEADER_BYTES",
+    "MODE_IN_CONFIG_VERSION",
     "OLDEST_READABLE_VERSION",
     "PREPROCESSING_FIELD",
     "PRUNED_FORMAT_VERSION",
@@ -85,10 +95,10 @@ __all__ = [
 ]
 
 FORMAT_NAME = "kvtracker-map"
-# bump on any change an older reader would misread (2: quantised caches, 3: compact keyframes)
-FORMAT_VERSION = 3
+# bump on any change an older reader would misread (2: quantised caches, 3: compact keyframes,
+# 4: the mode stored once, in the tracker config; compact maps' images as PNG)
+FORMAT_VERSION = 4
 OLDEST_READABLE_VERSION = 1
-DENSE_FORMAT_VERSION = 1  # what a dense cache's map is written as (readable by older SDKs)
 # Header field of version-2 quantised maps: what the scale tensors mean (checked on loading).
 QUANTIZATION_FIELD = "cache_quantization"
 # Optional header field (no version bump: a version-1 reader ignores it): the name of the
@@ -103,6 +113,13 @@ PRUNED_FORMAT_VERSION = 2  # the oldest version that holds a pruned map
 # Header field of a map whose keyframe arrays are stored compactly (version 3, keyframe_codec);
 # absent = the full payload of the table above.
 KEYFRAME_ENCODING_FIELD = "keyframe_encoding"
+# Version 4: the tracking mode is the tracker config's "mode" (no header field "mode"), and a
+# compact map's keyframe images may be PNG files (io/map_file/image_codec.py): the header then
+# names the codec and lists each file's length, which fixes the image tensor's size.
+MODE_IN_CONFIG_VERSION = 4
+IMAGE_CODEC_VERSION = 4
+IMAGE_CODEC_FIELD = "keyframe_image_codec"
+IMAGE_BYTES_FIELD = "keyframe_image_bytes"
 # Our headers are a few kB (checksums, ids, the tracker config); safetensors itself allows 100 MB.
 # A pickle or a zip read as a header length gives a number far above this.
 MAX_HEADER_BYTES = 8 * 1024 * 1024
@@ -140,6 +157,7 @@ _ITEMSIZE = {
 }  # fmt: skip
 
 IMAGE = "keyframes.image"
+IMAGE_PNG = "keyframes.image_png"
 MASK = "keyframes.mask"
 HAS_MASK = "keyframes.has_mask"
 T_WORLD_CAM = "keyframes.T_world_cam"
@@ -190,10 +208,11 @@ def tensor_schema(
     resolution: tuple[int, int],
     layer_lengths: tuple[int, ...] | None = None,
     keyframe_encoding: str = FULL,
+    image_bytes: tuple[int, ...] | None = None,
 ) -> dict[str, TensorSpec]:
     """Name -> spec of every tensor of a map with these properties (see the module table);
     ``layer_lengths`` for a pruned map, ``keyframe_encoding`` (a KEYFRAME_ENCODINGS key) for
-    a compact keyframe payload."""
+    a compact keyframe payload, ``image_bytes`` (each keyframe's PNG length) for PNG images."""
     n, (h, w) = num_keyframes, resolution
     schema = {}
     for layer in range(layout.num_layers):
@@ -225,6 +244,9 @@ def tensor_schema(
             del schema[name]
         for name, (code, shape) in compact_tensor_specs(keyframe_encoding, n, (h, w)).items():
             schema[name] = TensorSpec(code, shape)
+    if image_bytes is not None:
+        del schema[IMAGE]
+        schema[IMAGE_PNG] = TensorSpec("U8", (sum(image_bytes),))
     return schema
 
 

@@ -23,6 +23,7 @@ from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import CacheError, MapCorruptedError, MapFormatError
 from kvtracker_sdk.geometry.se3 import check_rigid
+from kvtracker_sdk.io.map_file.image_codec import RAW, decode_images, encode_images
 from kvtracker_sdk.io.map_file.keyframe_codec import FULL, decode_compact, encode_compact
 from kvtracker_sdk.io.map_file.map_format import MapInfo
 from kvtracker_sdk.io.map_file.map_schema import (
@@ -30,6 +31,7 @@ from kvtracker_sdk.io.map_file.map_schema import (
     FRAME_INDEX,
     HAS_MASK,
     IMAGE,
+    IMAGE_PNG,
     LOCAL_POINTS,
     MASK,
     MAX_WORLD_TRANSLATION,
@@ -151,9 +153,10 @@ def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
 
 def map_to_tensors(
     keyframe_map: KeyframeMap, resolution: tuple[int, int], *, compact: bool = False
-) -> tuple[dict[str, torch.Tensor], str]:
-    """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W), and their
-    keyframe encoding: ``"full"``, or with ``compact`` the one ``keyframe_codec`` chose.
+) -> tuple[dict[str, torch.Tensor], str, tuple[int, ...] | None]:
+    """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W), their keyframe
+    encoding (``"full"``, or with ``compact`` the one ``keyframe_codec`` chose) and, when
+    ``compact`` stores the images as PNG files (``image_codec``: when smaller), their lengths.
 
     Raises MapFormatError if a keyframe's arrays do not match the resolution or a pose is not
     finite: such a map could not be loaded back.
@@ -172,6 +175,9 @@ def map_to_tensors(
     ])  # fmt: skip
     confidence = _stack(keyframe_map, "confidence_map", (h, w), np.float32)
     points = _stack(keyframe_map, "local_points", (h, w, 3), np.float32)
+    images = _stack(keyframe_map, "image", (h, w, 3), np.uint8)
+    pngs = encode_images(images.numpy()) if compact else None
+    image_bytes = None if pngs is None else pngs[1]
     if compact:
         encoding, payload = encode_compact(masks, confidence.numpy(), points.numpy())
     else:
@@ -183,7 +189,7 @@ def map_to_tensors(
         }
     tensors = {
         **_cache_layers(keyframe_map.cache),
-        IMAGE: _stack(keyframe_map, "image", (h, w, 3), np.uint8),
+        **({IMAGE: images} if pngs is None else {IMAGE_PNG: torch.from_numpy(pngs[0])}),
         HAS_MASK: torch.tensor([kf.mask is not None for kf in kfs], dtype=torch.uint8),
         T_WORLD_CAM: _stack(keyframe_map, "T_world_cam", (4, 4), np.float64),
         TIMESTAMP: torch.tensor(
@@ -193,7 +199,7 @@ def map_to_tensors(
         MEAN_CONFIDENCE: torch.tensor([kf.mean_confidence for kf in kfs], dtype=torch.float64),
         **payload,
     }
-    return tensors, encoding
+    return tensors, encoding, image_bytes
 
 
 # ---------------------------------------------------------------------------------- loading
@@ -205,7 +211,12 @@ def _keyframes(
     has_mask = tensors[HAS_MASK].numpy()
     if not np.all((has_mask == 0) | (has_mask == 1)):
         raise MapCorruptedError(f"{source}: mask presence flags must be 0 or 1")
-    images = tensors[IMAGE].numpy()
+    if info.image_codec == RAW:
+        images = tensors[IMAGE].numpy()
+    else:  # decoded into a new array: the per-keyframe copies below are the only others
+        images = decode_images(
+            tensors[IMAGE_PNG].numpy(), info.image_bytes or (), info.resolution, source
+        )
     if info.keyframe_encoding == FULL:
         masks = tensors[MASK].numpy() != 0
         confidence, points = tensors[CONFIDENCE].numpy(), tensors[LOCAL_POINTS].numpy()

@@ -304,7 +304,7 @@ def _open_video(path: Path) -> Any:
 
 
 def _cv2() -> Any:
-    # Imported here so that `import kvtracker_sdk` stays cheap (OpenCV takes ~0.2 s to load).
+    # Imported here so that `import kvtracker_sdk` stays cheap (OpenCV is slow to load).
     import cv2
 
     return cv2

@@ -10,10 +10,9 @@ The file itself — atomic writes, header validation, checksums, never a pickle 
   read, and hands back the cache in that backend's dtype and on its device (an fp32 map of the
   same weights loads into a bf16 backend).
 * The configuration of a loaded map: by default the one saved with it; a ``TrackerConfig``
-  replaces it; a dict changes some of its fields (``TrackerConfig.updated``). Either way the mode
-  and the resolution side must be the map's: its keyframe images and K/V exist at one model input
-  size (otherwise ``MapModelMismatchError``), and object maps hold masked keyframes (otherwise
-  ``ConfigError``).
+  replaces it; a dict changes some of its fields (``TrackerConfig.updated``). Whether the map
+  can run with the backend, that configuration and the session's camera is answered by
+  ``io.map_file.compatibility.map_compatibility``, the one place that answers it.
 
 Nothing here touches a tracker: ``load_tracker_map`` returns plain data that the ``Tracker``
 installs in one step, so a load that fails at any point leaves the tracker as it was.
@@ -23,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -31,33 +29,24 @@ from kvtracker_sdk.backends.base import BackendInfo
 from kvtracker_sdk.backends.frame_checks import reads_quantized_caches
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.errors import (
-    ConfigError,
-    MapFormatError,
-    MapModelMismatchError,
-    MapVersionError,
-    StateError,
-)
+from kvtracker_sdk.errors import StateError
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.exports import map_export
+from kvtracker_sdk.io.map_file.compatibility import ConfigOverride, TrackerRequest
 from kvtracker_sdk.io.map_file.map_file import MapInfo, load_map, save_map
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.preprocess import PREPROCESSINGS
 
 __all__ = [
     "ConfigOverride",
-    "check_map_camera",
     "LoadedTrackerMap",
     "export_point_cloud",
     "export_trajectory",
     "load_tracker_map",
-    "resolve_config",
     "save_tracker_map",
 ]
 
 _log = get_logger(__name__)
 PathLike = str | os.PathLike[str]
-ConfigOverride = TrackerConfig | Mapping[str, Any] | None
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,96 +93,33 @@ def save_tracker_map(
     )
 
 
-def _saved_config(info: MapInfo, source: str) -> TrackerConfig:
-    try:
-        config = TrackerConfig.from_dict(json.loads(info.tracker_config_json))
-    except ConfigError as exc:  # e.g. a map from a newer SDK with more settings
-        raise MapFormatError(
-            f"{source}: the tracker config saved in the map is not valid for this SDK ({exc}); "
-            "pass config=TrackerConfig(...) to choose one"
-        ) from exc
-    if config.mode.value != info.mode:  # both come from the file: it contradicts itself
-        raise MapFormatError(
-            f"{source}: the header says {info.mode} mode, the saved tracker config "
-            f"{config.mode.value} mode"
-        )
-    return config
-
-
-def _fits_side(resolution: tuple[int, int], side: int, patch: int) -> bool:
-    """Whether any preprocessing (``kvtracker_sdk.preprocess.sizing``) could give (H, W) at a
-    resolution ``side`` — a necessary condition that holds for every pipeline, so a genuine map is
-    never refused. Upper bound: at most side² pixels for Pi3's and the legacy sizing (the legacy
-    one may exceed it only with a side clamped to one patch), (side + patch/2)² for DA3's longest
-    side. Lower bound: Pi3's and the legacy sizing round or floor each side by less than a patch
-    below the budget, so (H + patch)(W + patch) > side²; DA3's longest side is within patch/2 of
-    ``side``."""
-    height, width = resolution
-    below = height * width <= (side + patch) ** 2 or min(height, width) <= patch
-    longest = max(height, width)
-    above = (height + patch) * (width + patch) > side * side or 2 * longest >= 2 * side - patch
-    return below and above
-
-
-def resolve_config(info: MapInfo, override: ConfigOverride, source: str) -> TrackerConfig:
-    """The configuration a map saved with ``info`` runs under (see the module docstring).
-
-    Raises ConfigError for an invalid override or another mode, MapModelMismatchError for
-    another resolution side, MapFormatError if the saved config is needed but unreadable.
-    """
-    if isinstance(override, TrackerConfig):
-        config = override
-    elif override is not None and not isinstance(override, Mapping):
-        raise ConfigError(f"config must be a TrackerConfig, a dict or None, not {override!r}")
-    else:
-        config = _saved_config(info, source)
-        if override:
-            config = config.updated(**override)
-    if config.mode.value != info.mode:
-        raise ConfigError(
-            f"{source} was saved in {info.mode} mode; the tracker is configured for "
-            f"{config.mode.value} mode"
-        )
-    saved_side = json.loads(info.tracker_config_json).get("resolution")
-    if isinstance(saved_side, int) and not _fits_side(
-        info.resolution, saved_side, info.backend.patch_size
-    ):
-        height, width = info.resolution
-        raise MapFormatError(
-            f"{source}: its saved tracker config has resolution {saved_side}, which cannot give "
-            f"its {height}x{width} keyframes (patch {info.backend.patch_size})"
-        )
-    if config.resolution is None and isinstance(saved_side, int):
-        config = config.updated(resolution=saved_side)  # unset: the map's
-    if isinstance(saved_side, int) and saved_side != config.resolution:
-        height, width = info.resolution
-        raise MapModelMismatchError(
-            f"{source} was built at resolution {saved_side} (model input {height}x{width}); "
-            f"the tracker is configured for resolution {config.resolution}"
-        )
-    return config
-
-
 def load_tracker_map(
     path: PathLike, backend_info: BackendInfo, config: ConfigOverride = None, *,
-    backend_preprocessing: str | None = None,
+    backend_preprocessing: str | None = None, camera: Camera | None = None,
 ) -> LoadedTrackerMap:
     """Load and verify the map at ``path`` for the backend described by ``backend_info``.
     ``backend_preprocessing``: the name of the preprocessing the backend declares (known even
-    when it is not registered).
+    when it is not registered). ``camera``: the session's intrinsics; when they differ from the
+    map's saved ones a WARNING ``map_camera_mismatch`` is logged (not refused: the networks take
+    no intrinsics as input, but the map's geometry was made by the saved camera).
 
-    Raises the map errors of ``io/map_file`` (format, version, model mismatch — checked before
-    the tensor data is read —, corruption, I/O) and those of :func:`resolve_config`.
+    Whether the map can run is answered once, from its header, before any tensor is read
+    (``io.map_file.compatibility.map_compatibility``); its first refusal is raised (model
+    mismatch, unknown preprocessing, config errors), then those of reading the file
+    (corruption, I/O).
     """
     source = str(path)
-    loaded = load_map(path, expected_backend=backend_info)
-    known = loaded.info.preprocessing in PREPROCESSINGS
-    if not known and loaded.info.preprocessing != backend_preprocessing:
-        raise MapVersionError(
-            f"{source}: its frames were prepared by {loaded.info.preprocessing!r}, which this SDK "
-            f"does not know (known: {sorted(PREPROCESSINGS)}); upgrade kvtracker-sdk"
-        )
-    resolved = resolve_config(loaded.info, config, source)
+    request = TrackerRequest(config, backend_preprocessing, camera)
+    loaded = load_map(path, expected_backend=backend_info, tracker=request)
+    resolved = loaded.compatibility.config if loaded.compatibility is not None else None
+    if resolved is None:  # unreachable: load_map raised the refusal
+        raise StateError(f"{source}: no configuration was resolved for the map")
+    if loaded.compatibility is not None and not loaded.compatibility.camera_agrees:
+        saved, given = loaded.info.camera, camera
+        _log.warning("map_camera_mismatch", path=source,
+                     saved=None if saved is None else saved.undistorted().to_dict(),
+                     given=None if given is None else given.undistorted().to_dict(),
+                     saved_source=getattr(loaded.info.camera_source, "value", None))  # fmt: skip
     keyframe_map = loaded.keyframe_map
     if keyframe_map.cache.quantized and not reads_quantized_caches(backend_info):
         # e.g. ONNX Runtime, whose graph takes the whole cache as inputs: dequantised once here
@@ -205,33 +131,6 @@ def load_tracker_map(
         if resolved.cache_dtype != "backend":  # the session goes on with dense maps
             resolved = resolved.updated(cache_dtype="backend")
     return LoadedTrackerMap(keyframe_map, resolved, loaded.info)
-
-
-def check_map_camera(info: MapInfo, given: Camera | None, source: str) -> bool:
-    """Warn (log WARNING ``map_camera_mismatch``) when the intrinsics given for this session
-    differ from those saved with the map; True when they agree or either is unknown.
-
-    Differ means: another image size, a focal length off by more than 1 %, or a principal point
-    off by more than 1 % of the image size. Not refused: the networks take no intrinsics as
-    input, so tracking runs; but the map's geometry was made by the saved camera, so poses and
-    scale are only as good as the two cameras are alike.
-    """
-    saved = info.camera
-    if saved is None or given is None:
-        return True
-    given = given.undistorted()
-    saved = saved.undistorted()
-    same = (
-        saved.size == given.size
-        and abs(given.fx / saved.fx - 1.0) <= 0.01
-        and abs(given.fy / saved.fy - 1.0) <= 0.01
-        and abs(given.cx - saved.cx) <= 0.01 * saved.width
-        and abs(given.cy - saved.cy) <= 0.01 * saved.height
-    )
-    if not same:
-        _log.warning("map_camera_mismatch", path=source, saved=saved.to_dict(),
-                     given=given.to_dict(), saved_source=getattr(info.camera_source, "value", None))
-    return same
 
 
 def export_point_cloud(keyframe_map: KeyframeMap | None, path: PathLike, **options: Any) -> int:
