@@ -147,9 +147,8 @@ def _cache_layers(cache: KVCache, *, views: bool = False) -> dict[str, torch.Ten
         for i in range(cache.layout.num_layers):
             names = layer_tensor_names(i)
             for part, view in cache.stored_parts(i).items():
-                layers[names[part]] = (
-                    view[0] if views else torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
-                )
+                copy = None if views else torch.empty(view.shape[1:], dtype=view.dtype)
+                layers[names[part]] = view[0] if copy is None else copy.copy_(view[0])
             if cache.pruned:
                 layers[layer_kept(i)] = cache.kept_tokens(i).contiguous()
     return layers
