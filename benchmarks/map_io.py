@@ -21,7 +21,10 @@ Each round, in rotating order:
   (``bytearray`` of the file's size, as any reader of the whole file needs).
 
 The ratios are per round (save / write, load / read), reported as their median, with every
-sample and the load averages in the JSON. Run from the repository root::
+sample, the process CPU time of each step (all its threads) and the load averages in the JSON.
+On a machine busy with other work, a step's wall time grows with the CPU it needs (hashing:
+CPU work, the bulk of a save's and a verified load's) while the references mostly wait on the disk, so the
+ratios are worth reading with the load average and the CPU column. Run from the repository root::
 
     python -m benchmarks.map_io --rounds 5 --name map_io
 
@@ -35,6 +38,7 @@ import json
 import os
 import platform
 import statistics
+import subprocess
 import tempfile
 import time
 from collections.abc import Callable
@@ -147,14 +151,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "raw read cold, new memory": read_new,
         }  # fmt: skip
         samples: dict[str, list[float]] = {name: [] for name in steps}
+        cpu: dict[str, list[float]] = {name: [] for name in steps}
         loads = [os.getloadavg()]
         for round_index in range(args.rounds):
             names = list(steps)
             shift = round_index % len(names)
             for name in names[shift:] + names[:shift]:
-                start = time.perf_counter()
+                start, start_cpu = time.perf_counter(), time.process_time()
                 steps[name]()
                 samples[name].append(time.perf_counter() - start)
+                cpu[name].append(time.process_time() - start_cpu)
             loads.append(os.getloadavg())
         size = len(data)
     save_ratios = [s / w for s, w in zip(samples["save_map"], samples["write + fsync"], strict=True)]
@@ -168,8 +174,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "machine": {"cpu": _cpu(), "cpus": os.cpu_count(), "platform": platform.platform(),
                     "torch": torch.__version__},
         "file_bytes": size, "keyframes": args.keyframes, "rounds": args.rounds,
-        "samples_s": samples, "load_averages": loads,
+        "code": _code(),
+        "samples_s": samples, "cpu_s": cpu, "load_averages": loads,
         "median_s": {name: statistics.median(s) for name, s in samples.items()},
+        "median_cpu_s": {name: statistics.median(s) for name, s in cpu.items()},
         "save_over_write_fsync": {"median": statistics.median(save_ratios), "rounds": save_ratios},
         "load_over_raw_read": {"median": statistics.median(load_ratios), "rounds": load_ratios},
         "load_over_raw_read_new_memory": {"median": statistics.median(load_new_ratios),
@@ -177,14 +185,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }  # fmt: skip
     lines = [f"map file {size / 1e6:.0f} MB ({args.keyframes} keyframes, Pi3 large layout, "
              f"224, bf16); {args.rounds} rounds; load average {loads[0][0]:.1f}→{loads[-1][0]:.1f}",
-             "", "| step | median (s) | GB/s | ratio (median of rounds) |", "|---|---:|---:|---:|"]  # fmt: skip
+             "", "| step | median (s) | GB/s | CPU (s, all threads) | ratio (median of rounds) |",
+             "|---|---:|---:|---:|---:|"]  # fmt: skip
     ratio = {"save_map": result["save_over_write_fsync"]["median"],
              "load_map cold verified": result["load_over_raw_read"]["median"]}  # fmt: skip
     for name, seconds in result["median_s"].items():
         text = f"{ratio[name]:.2f}×" if name in ratio else "reference"
         if name == "load_map cold verified":
             text += f" ({result['load_over_raw_read_new_memory']['median']:.2f}× new memory)"
-        lines.append(f"| {name} | {seconds:.3f} | {size / 1e9 / seconds:.2f} | {text} |")
+        cpu_seconds = result["median_cpu_s"][name]
+        lines.append(f"| {name} | {seconds:.3f} | {size / 1e9 / seconds:.2f} | {cpu_seconds:.2f} "
+                     f"| {text} |")  # fmt: skip
     table = "\n".join(lines)
     result["table"] = table
     print(table)
@@ -193,6 +204,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     path.write_text(json.dumps(result, indent=1) + "\n")
     print(f"wrote {path}")
     return result
+
+
+def _code() -> dict[str, str]:
+    """Which ``kvtracker_sdk`` was measured: its folder and that checkout's commit."""
+    import kvtracker_sdk
+
+    folder = Path(kvtracker_sdk.__file__).parent
+    try:
+        commit = subprocess.run(["git", "-C", str(folder), "rev-parse", "HEAD"],
+                                capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown (not a git checkout)"
+    return {"package": str(folder), "commit": commit}
 
 
 def _cpu() -> str:
