@@ -11,7 +11,7 @@ concurrent writer's temporary file is being written, so it is always younger tha
 
 Replacing a large file makes the kernel free the old one's blocks and cached pages inside the
 ``os.replace`` (tens of milliseconds per hundred megabytes). The writers hold a descriptor of the
-old file across the rename and close it on a short-lived background thread, so that the freeing
+old file across the rename and, for a large one, close it on a short-lived background thread, so that the freeing
 happens there, after the new file is in place: the rename itself is unchanged (POSIX only).
 
 Temporary names add 18 bytes to the target's name; for a name that would then exceed the
@@ -31,9 +31,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-__all__ = ["STALE_TEMP_SECONDS", "atomic_path", "atomic_write"]
+__all__ = ["FREE_IN_BACKGROUND_BYTES", "STALE_TEMP_SECONDS", "atomic_path", "atomic_write"]
 
 STALE_TEMP_SECONDS = 3600.0
+FREE_IN_BACKGROUND_BYTES = 16 << 20  # a replaced file at least this large is freed on a thread
 _TOKEN_BYTES = 6  # the temporary name's random part: 12 hex digits
 _ADDED_BYTES = 2 * _TOKEN_BYTES + 6  # ".", ".", the hex digits and ".tmp"
 
@@ -131,7 +132,16 @@ def _replace(tmp: Path, target: Path) -> None:
         os.replace(tmp, target)
     finally:
         if previous is not None:
-            threading.Thread(target=os.close, args=(previous,), name="kvtracker-free-old").start()
+            try:
+                large = os.fstat(previous).st_size >= FREE_IN_BACKGROUND_BYTES
+            except OSError:
+                large = False
+            if large:
+                threading.Thread(
+                    target=os.close, args=(previous,), name="kvtracker-free-old"
+                ).start()
+            else:  # freeing a small file costs less than a thread
+                os.close(previous)
 
 
 def _remove_stale_temporaries(target: Path) -> None:
