@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from kvtracker_sdk.io.files import atomic
 from kvtracker_sdk.io.files.atomic import STALE_TEMP_SECONDS, atomic_path, atomic_write
 
 
@@ -61,3 +64,45 @@ def test_leftovers_of_killed_writers_are_removed_once_stale(tmp_path: Path, writ
             path.write_bytes(b"map")
     assert target.read_bytes() == b"map"
     assert not stale.exists() and fresh.exists() and other.exists()
+
+
+def _descriptors_of(path: Path) -> int:
+    """How many of this process's descriptors are open on the file ``path`` names now."""
+    inode = path.stat().st_ino
+    count = 0
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):
+            count += os.stat(f"/proc/self/fd/{fd}").st_ino == inode
+    return count
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc")
+@pytest.mark.parametrize(("writer", "large"), [("handle", True), ("path", True), ("handle", False)])
+def test_the_replaced_file_is_freed_after_the_rename_not_in_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, writer: str, large: bool
+) -> None:
+    target = tmp_path / "room.kvmap"
+    target.write_bytes(b"old" * 1000)
+    held_during_rename: list[int] = []
+    real_replace = os.replace
+
+    def watched_replace(source: Path, destination: Path) -> None:
+        held_during_rename.append(_descriptors_of(Path(destination)))
+        real_replace(source, destination)
+
+    monkeypatch.setattr(atomic.os, "replace", watched_replace)
+    if large:  # this 3000-byte file counts as large: closed on a thread
+        monkeypatch.setattr(atomic, "FREE_IN_BACKGROUND_BYTES", 1000)
+    before = len(os.listdir("/proc/self/fd"))
+    if writer == "handle":
+        with atomic_write(target, binary=True) as handle:
+            handle.write(b"new")
+    else:
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"new")
+    assert held_during_rename == [1]  # the old file stays open across the rename ...
+    for thread in threading.enumerate():
+        if thread.name == "kvtracker-free-old":
+            thread.join(timeout=10)
+    assert len(os.listdir("/proc/self/fd")) == before  # ... and is closed afterwards
+    assert target.read_bytes() == b"new"

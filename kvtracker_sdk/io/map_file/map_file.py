@@ -4,8 +4,9 @@ Format: safetensors (``map_schema`` lists the tensors, ``map_format`` the header
 ever read or written: a pickle, a zip (``torch.save``) or any other file renamed ``.kvmap`` is just
 bytes that fail the header checks, and is refused without being executed.
 
-Saving streams the file (``safetensors_writer``) into a temporary file beside the target while
-other threads hash the same tensors (the header, written first with placeholder digests of the
+Saving streams the file (``safetensors_writer``) into a temporary file beside the target — the
+K/V straight from the cache's buffers, under its lock — while other threads hash the same
+bytes (the header, written first with placeholder digests of the
 same length, is rewritten in place at the end: one pass over the data), fsyncs it and
 ``os.replace``-s it over the target (then fsyncs the directory): the path holds the old map
 or the complete new one, never half of one, even if the process dies mid-write; the temporary
@@ -232,11 +233,12 @@ def save_map(
     ``backend_info`` is the backend that made the cache (its fingerprint and layout go into the
     header); ``tracker_config_json`` is the tracker's configuration as a JSON object; ``mode``
     the tracking mode ("scene", "object"); ``camera`` the session's input-image intrinsics
-    (optional; ``camera_source`` says where they came from). The cache is snapshotted under its
-    lock. ``compact_keyframes`` stores the keyframes' masks, confidences and points compactly
-    (``io/map_file/keyframe_codec.py``: float16 points) and their images as PNG files when that
-    is smaller (``io/map_file/image_codec.py``: lossless); None (default) does so exactly when
-    the cache is quantised, so a dense map keeps its points bit for bit. If anything fails,
+    (optional; ``camera_source`` says where they came from). The cache's lock is held while its
+    K/V are hashed and written (not during the final ``fsync``). ``compact_keyframes`` stores the
+    keyframes' masks, confidences and points compactly (``io/map_file/keyframe_codec.py``: float16
+    points) and their images as PNG files when that is smaller (``io/map_file/image_codec.py``:
+    lossless); None (default) does so exactly when the cache is quantised, so a dense map keeps
+    its points bit for bit. If anything fails,
     ``path`` still holds its previous content and no temporary file remains.
     """
     target = Path(path)
@@ -244,31 +246,39 @@ def save_map(
     info = replace(info, camera=camera, camera_source=camera_source if camera else None)
     if compact_keyframes is None:
         compact_keyframes = keyframe_map.cache.quantized
-    tensors, encoding, image_bytes = map_to_tensors(
-        keyframe_map, info.resolution, compact=compact_keyframes
-    )
-    info = replace(
-        info,
-        keyframe_encoding=encoding,
-        image_codec=RAW if image_bytes is None else PNG,
-        image_bytes=image_bytes,
-        tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
-    )
-    # one pass over the data: the digests are computed on other threads while it is written,
-    # then the header (written first with placeholders of the same length) is rewritten
-    with ThreadPoolExecutor(max_workers=1) as hashing:
-        digests = hashing.submit(sha256_of, tensors)
-
-        def sealed() -> dict[str, str]:
-            nonlocal info
-            info = replace(info, tensor_sha256=digests.result())
-            return encode_metadata(info)
-
+    # The K/V are hashed and written straight from the cache's buffers, not from a snapshot copy
+    # (a second copy of the whole cache in new memory, which costs more than the write itself):
+    # the cache's lock keeps them unchanged until their bytes are in the page cache, and is
+    # released before the fsync, the slow part.
+    with contextlib.ExitStack() as locked:
+        locked.enter_context(keyframe_map.cache.lock)
+        tensors, encoding, image_bytes = map_to_tensors(
+            keyframe_map, info.resolution, compact=compact_keyframes, cache_views=True
+        )
+        info = replace(
+            info,
+            keyframe_encoding=encoding,
+            image_codec=RAW if image_bytes is None else PNG,
+            image_bytes=image_bytes,
+            tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
+        )
+        # one pass over the data: the digests are computed on other threads while it is
+        # written, then the header (written first with placeholders of the same length) is
+        # rewritten
         try:
             with atomic_write(target, binary=True) as handle:
-                size = write_safetensors(
-                    handle, tensors, encode_metadata(info), final_metadata=sealed
-                )
+                with ThreadPoolExecutor(max_workers=1) as hashing:
+                    digests = hashing.submit(sha256_of, tensors)
+
+                    def sealed() -> dict[str, str]:
+                        nonlocal info
+                        info = replace(info, tensor_sha256=digests.result())
+                        return encode_metadata(info)
+
+                    size = write_safetensors(
+                        handle, tensors, encode_metadata(info), final_metadata=sealed
+                    )
+                locked.close()  # the data is hashed and in the page cache: the cache may change
         except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
             raise MapIOError(f"cannot write map {target}: {exc}") from exc
     _remove_safetensors_leftovers(target.parent)

@@ -45,6 +45,7 @@ from kvtracker_sdk.io.map_file.map_schema import (
     layer_value,
     layer_value_scale,
 )
+from kvtracker_sdk.io.map_file.safetensors_writer import byte_pieces
 
 __all__ = [
     "cache_problem",
@@ -64,16 +65,18 @@ __all__ = [
 _HASH_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
-def _tensor_bytes(tensor: torch.Tensor) -> memoryview:
-    """The raw bytes of a contiguous CPU tensor (any dtype, bfloat16 included), no copy."""
-    return tensor.reshape(-1).view(torch.uint8).numpy().data
-
-
 def sha256_of(tensors: Mapping[str, torch.Tensor]) -> dict[str, str]:
-    """Hex sha256 of each contiguous CPU tensor's bytes."""
+    """Hex sha256 of each CPU tensor's bytes in row-major order (the tensors contiguous, or
+    contiguous row by row, as ``write_safetensors`` takes them: hashed without a copy)."""
+
+    def digest(tensor: torch.Tensor) -> str:
+        hasher = hashlib.sha256()
+        for piece in byte_pieces(tensor):
+            hasher.update(piece)
+        return hasher.hexdigest()
+
     with ThreadPoolExecutor(max_workers=_HASH_WORKERS) as pool:
-        digests = pool.map(lambda t: hashlib.sha256(_tensor_bytes(t)).hexdigest(), tensors.values())
-        return dict(zip(tensors, digests, strict=True))
+        return dict(zip(tensors, pool.map(digest, tensors.values()), strict=True))
 
 
 def check_digests(actual: Mapping[str, str], expected: Mapping[str, str], source: str) -> None:
@@ -136,27 +139,35 @@ def layer_tensor_names(layer: int) -> dict[str, str]:
     }
 
 
-def _cache_layers(cache: KVCache) -> dict[str, torch.Tensor]:
+def _cache_layers(cache: KVCache, *, views: bool = False) -> dict[str, torch.Tensor]:
     """Contiguous CPU copies [heads, L_i, head_dim or 1] of what every layer stores at rest (a
     quantised cache: its data and scales, never a dequantised copy; L_i = N*T unless pruned, and a
-    pruned cache adds each layer's kept token indices)."""
+    pruned cache adds each layer's kept token indices). ``views``: views of the cache's own
+    buffers instead (each head contiguous), valid only while the caller holds ``cache.lock``."""
     layers = {}
     with cache.lock:  # a consistent snapshot even if another thread edits the cache afterwards
         for i in range(cache.layout.num_layers):
             names = layer_tensor_names(i)
             for part, view in cache.stored_parts(i).items():
-                layers[names[part]] = torch.empty(view.shape[1:], dtype=view.dtype).copy_(view[0])
+                copy = None if views else torch.empty(view.shape[1:], dtype=view.dtype)
+                layers[names[part]] = view[0] if copy is None else copy.copy_(view[0])
             if cache.pruned:
                 layers[layer_kept(i)] = cache.kept_tokens(i).contiguous()
     return layers
 
 
 def map_to_tensors(
-    keyframe_map: KeyframeMap, resolution: tuple[int, int], *, compact: bool = False
+    keyframe_map: KeyframeMap,
+    resolution: tuple[int, int],
+    *,
+    compact: bool = False,
+    cache_views: bool = False,
 ) -> tuple[dict[str, torch.Tensor], str, tuple[int, ...] | None]:
     """The map's tensors (contiguous, CPU) for a file at ``resolution`` (H, W), their keyframe
     encoding (``"full"``, or with ``compact`` the one ``keyframe_codec`` chose) and, when
     ``compact`` stores the images as PNG files (``image_codec``: when smaller), their lengths.
+    ``cache_views``: the K/V as views of the cache's buffers, not copies (contiguous head by
+    head; the caller holds ``keyframe_map.cache.lock`` for as long as it uses them).
 
     Raises MapFormatError if a keyframe's arrays do not match the resolution or a pose is not
     finite: such a map could not be loaded back.
@@ -188,7 +199,7 @@ def map_to_tensors(
             LOCAL_POINTS: points,
         }
     tensors = {
-        **_cache_layers(keyframe_map.cache),
+        **_cache_layers(keyframe_map.cache, views=cache_views),
         **({IMAGE: images} if pngs is None else {IMAGE_PNG: torch.from_numpy(pngs[0])}),
         HAS_MASK: torch.tensor([kf.mask is not None for kf in kfs], dtype=torch.uint8),
         T_WORLD_CAM: _stack(keyframe_map, "T_world_cam", (4, 4), np.float64),
@@ -300,6 +311,40 @@ def empty_cache(info: MapInfo, kept_tokens: list[torch.Tensor] | None) -> KVCach
     )
 
 
+# per float dtype: the integer type of its width and the mask of its exponent bits; a value is
+# NaN or infinite exactly when all of them are set
+_EXPONENT_BITS: dict[torch.dtype, tuple[type, int]] = {
+    torch.bfloat16: (np.int16, 0x7F80),
+    torch.float16: (np.int16, 0x7C00),
+    torch.float32: (np.int32, 0x7F800000),
+    torch.float64: (np.int64, 0x7FF0000000000000),
+}
+
+
+def _all_finite(tensor: torch.Tensor) -> bool:
+    """Whether every value of ``tensor`` (a float dtype; [1, H, L, X] as ``stored_parts`` gives
+    it, each head contiguous) is finite.
+
+    Read head by head from the buffers as integers, with numpy: ``isfinite(tensor.float())``
+    converts the whole K/V to float32 first, and torch's own reductions split over its OpenMP
+    threads, which stall on a busy machine; either is slower than the load's own read. float8
+    has neither a numpy type nor a torch ``max``: it is converted (one byte per value).
+    """
+    bits = _EXPONENT_BITS.get(tensor.dtype)
+    if bits is None:
+        return bool(torch.isfinite(tensor.float()).all())
+    integer, mask = bits
+    heads = tensor[0] if tensor.dim() > 1 else tensor
+    try:
+        pieces = byte_pieces(heads)
+    except ValueError:  # not a layout the cache hands out: check a contiguous copy
+        pieces = byte_pieces(heads.contiguous())
+    return all(
+        int(np.bitwise_and(np.frombuffer(piece, dtype=integer), mask).max(initial=0)) != mask
+        for piece in pieces
+    )
+
+
 def cache_problem(cache: KVCache) -> str | None:
     """What makes a loaded cache's stored values impossible, or None.
 
@@ -322,7 +367,7 @@ def cache_problem(cache: KVCache) -> str | None:
             elif tensor.dtype == torch.int8:
                 if tensor.numel() and int(tensor.min()) < -127:
                     return f"layer {layer} {name}: int8 data outside [-127, 127]"
-            elif tensor.numel() and not bool(torch.isfinite(tensor.float()).all()):
+            elif tensor.numel() and not _all_finite(tensor):
                 return f"layer {layer} {name}: values that are not finite"
     return None
 

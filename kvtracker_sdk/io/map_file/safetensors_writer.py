@@ -17,6 +17,10 @@ with the metadata given, and rewritten in place (``pwrite``) with the final one,
 encode to the same length (fixed-length digests do): still one pass over the data. The data
 goes out in chunks, each handed to the disk at once (``writeback``), so that the final
 ``fsync`` does not wait for all of it.
+
+A tensor need not be contiguous as a whole, only row by row (``byte_pieces``): the map's K/V
+are written straight from views [heads, L, X] of the cache's buffers, whose heads are
+contiguous slices of a larger capacity. The file holds the same bytes as for a contiguous copy.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import torch
 
 from kvtracker_sdk.io.map_file.writeback import start_writeback
 
-__all__ = ["write_safetensors"]
+__all__ = ["byte_pieces", "write_safetensors"]
 
 _DTYPE_CODES: dict[torch.dtype, str] = {
     torch.float64: "F64", torch.float32: "F32", torch.float16: "F16", torch.bfloat16: "BF16",
@@ -55,6 +59,20 @@ def _raw_bytes(tensor: torch.Tensor) -> memoryview:
     return tensor.reshape(-1).view(torch.uint8).numpy().data
 
 
+def byte_pieces(tensor: torch.Tensor) -> list[memoryview]:
+    """The bytes of a CPU tensor in row-major order, without a copy: one piece if it is
+    contiguous, else one per row (index of the first dimension), each of which must be.
+    ``ValueError`` for anything else (no tensor the map writes)."""
+    if tensor.device.type != "cpu":
+        raise ValueError("the tensor must be on the CPU")
+    if tensor.is_contiguous():
+        return [_raw_bytes(tensor)]
+    rows = tensor.unbind(0) if tensor.dim() else ()
+    if not rows or not all(row.is_contiguous() for row in rows):
+        raise ValueError("the tensor must be contiguous, or contiguous row by row")
+    return [_raw_bytes(row) for row in rows]
+
+
 def _header_bytes(header: dict[str, object], metadata: Mapping[str, str]) -> bytes:
     raw = json.dumps({**header, "__metadata__": dict(metadata)}, separators=(",", ":")).encode()
     return raw + b" " * (-len(raw) % 8)
@@ -67,16 +85,20 @@ def write_safetensors(
     *,
     final_metadata: Callable[[], Mapping[str, str]] | None = None,
 ) -> int:
-    """Write ``tensors`` (contiguous, CPU) and ``metadata`` to ``handle`` (a file opened at its
-    start); return the bytes written. ``final_metadata()``, called after the data is written,
-    replaces ``metadata`` in the header (same encoded length, ``ValueError`` otherwise)."""
+    """Write ``tensors`` (CPU, contiguous or contiguous row by row: ``byte_pieces``) and
+    ``metadata`` to ``handle`` (a file opened at its start); return the bytes written.
+    ``final_metadata()``, called after the data is written, replaces ``metadata`` in the header
+    (same encoded length, ``ValueError`` otherwise)."""
     order = sorted(tensors, key=lambda name: (-tensors[name].element_size(), name))
     header: dict[str, object] = {"__metadata__": {}}  # safetensors puts it first
+    pieces: dict[str, list[memoryview]] = {}
     offset = 0
     for name in order:
         tensor = tensors[name]
-        if not tensor.is_contiguous() or tensor.device.type != "cpu":
-            raise ValueError(f"tensor {name!r} must be contiguous and on the CPU")
+        try:
+            pieces[name] = byte_pieces(tensor)
+        except ValueError as exc:
+            raise ValueError(f"tensor {name!r}: {exc}") from exc
         size = tensor.numel() * tensor.element_size()
         header[name] = {
             "dtype": _DTYPE_CODES[tensor.dtype],
@@ -88,15 +110,17 @@ def write_safetensors(
     handle.write(len(raw).to_bytes(8, "little"))
     handle.write(raw)
     written, fd = 8 + len(raw), _descriptor(handle)
+    handed = written  # bytes up to here were handed to the disk (start_writeback)
     for name in order:
-        data = _raw_bytes(tensors[name])
-        for start in range(0, len(data), _CHUNK):  # the disk starts on each chunk at once
-            chunk = data[start : start + _CHUNK]
-            handle.write(chunk)
-            if fd is not None:
-                handle.flush()
-                start_writeback(fd, written, len(chunk))
-            written += len(chunk)
+        for data in pieces[name]:
+            for start in range(0, len(data), _CHUNK):
+                chunk = data[start : start + _CHUNK]
+                handle.write(chunk)
+                written += len(chunk)
+                if fd is not None and written - handed >= _CHUNK:  # the disk starts at once
+                    handle.flush()
+                    start_writeback(fd, handed, written - handed)
+                    handed = written
     if final_metadata is not None:
         final = _header_bytes(header, final_metadata())
         if len(final) != len(raw):
