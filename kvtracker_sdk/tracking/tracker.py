@@ -196,14 +196,17 @@ class Tracker:
     # ------------------------------------------------------------------ read-only views
     @property
     def config(self) -> TrackerConfig:
+        """The configuration in use (an unset resolution resolved to the family's default)."""
         return self._config
 
     @property
     def backend(self) -> Backend:
+        """The backend running the network now (``set_backend`` swaps it)."""
         return self._loop.backend
 
     @property
     def state(self) -> TrackingState:
+        """The tracking state; read it with ``reason`` at once through ``snapshot()``."""
         return self._loop.state
 
     @property
