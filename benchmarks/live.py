@@ -106,9 +106,9 @@ def run_live(
             overheads.append(result.timings_ms.get("total", 0.0) - result.timings_ms.get("track", 0.0))
             outcomes.append(("track" in result.timings_ms, result.pose_valid))
 
-    tracker.on_result(on_result)
+    tracker.events.on_result(on_result)
     states: set[Any] = set()
-    tracker.on_state_change(lambda event: states.add(event.state))
+    tracker.events.on_state_change(lambda event: states.add(event.state))
     blocks, copies = np.empty(count), np.empty(count)
     period = 1.0 / rate_hz
     start = time.perf_counter()
@@ -123,9 +123,9 @@ def run_live(
         frames[k % len(frames)].copy()
         copies[k] = time.perf_counter() - t1
     produced = time.perf_counter()
-    assert tracker.wait_idle(timeout=600)
+    assert tracker.live.wait_idle(timeout=600)
     tracker.wait_for_map(timeout=600)
-    stats = tracker.stats
+    stats = tracker.live.stats
     assert stats.submitted == stats.processed + stats.dropped == count, stats
     with lock:
         done = np.array([r[0] for r in records])

@@ -21,8 +21,9 @@ Runs:
   noise, 0.3° per axis, would otherwise be read as a tilt); the per-frame value is reported too.
   Also the ROS 2 bag of the run (``write_ros2_bag``) read back: the same tilt of the map frame's z.
 * ``known_size``: object mode on a 720-frame orbit of the 0.6 m sphere, its true height stated on
-  frame 0 (``set_object_height``); and a scene-mode run where the true distance between the
-  camera centres of frames 0 and ``distance_frame`` is stated (``set_known_distance``).
+  frame 0 (``tracker.world.set_object_height``); and a scene-mode run where the true distance
+  between the camera centres of frames 0 and ``distance_frame`` is stated
+  (``tracker.world.set_known_distance``).
 
     python -m benchmarks.metric_world [--frames 2981] [--out benchmarks/results/metric_world.json]
 
@@ -112,7 +113,7 @@ def drive(
     cfg = TrackerConfig(resolution=224, **(config or {}))
     tracker = Tracker(cfg, backend)
     run = Drive()
-    tracker.on_world_frame_changed(run.world_events.append)
+    tracker.events.on_world_frame_changed(run.world_events.append)
     generation = 0
     for frame in backend.frames(SIZE, stop=frames, textured=False, with_mask=with_mask):
         index = frame.index
@@ -122,7 +123,7 @@ def drive(
             tracker.save_map(path)
             tracker.close()
             tracker = Tracker.from_map(path, backend)
-            tracker.on_world_frame_changed(run.world_events.append)
+            tracker.events.on_world_frame_changed(run.world_events.append)
         rng = np.random.default_rng((seed, index))
         depth = (sensor_depth(backend.scene, frame.T_world_cam, SIZE, rng=rng)
                  if depth_every and index % depth_every == 0 else None)
@@ -286,7 +287,7 @@ def run_object_height(shape: str, frames: int = 720, *, gravity: bool = True) ->
 
     def state(tracker: Tracker, index: int, _run: Drive) -> None:
         if index == 0:
-            tracker.set_object_height(height)
+            tracker.world.set_object_height(height)
 
     run, tracker = drive(backend, frames=frames, config={"mode": "object"}, with_mask=True,
                          statement=state, gravity=gravity)
@@ -313,7 +314,7 @@ def run_known_distance(truth: GroundTruth, frames: int, distance_frame: int) -> 
             first.append(tracker.get_tracked_pose())
         if index == distance_frame:
             length = float(np.linalg.norm(truth[distance_frame, :3, 3] - truth[0, :3, 3]))
-            tracker.set_known_distance(length, first[0], tracker.get_tracked_pose())
+            tracker.world.set_known_distance(length, first[0], tracker.get_tracked_pose())
 
     run, tracker = drive(backend, frames=frames, statement=state)
     tracker.close()

@@ -175,7 +175,7 @@ def first_walk(lay: Layout, map_path: Path | None = None) -> dict[str, Any]:
         for frame in backend.frames(SIZE, textured=False, stop=lay.first_frames):
             bbox = boxes[0] if frame.index == 0 else None
             results.append(tracker.push_frame(frame.image, timestamp=frame.timestamp, bbox=bbox))
-        kf_map, frame0 = tracker.keyframe_map, tracker.object_frame
+        kf_map, frame0 = tracker.keyframe_map, tracker.object.frame
         assert kf_map is not None and frame0 is not None
         if map_path is not None:
             tracker.save_map(map_path)

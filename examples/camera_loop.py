@@ -95,8 +95,8 @@ def main(argv: list[str] | None = None) -> App:
 
     app = App()
     with open_tracker(config, backend, run_input) as tracker:  # the input's camera, if known
-        tracker.on_state_change(app.on_state_change)
-        tracker.on_keyframe(app.on_keyframe)
+        tracker.events.on_state_change(app.on_state_change)
+        tracker.events.on_keyframe(app.on_keyframe)
         for image, timestamp in camera:  # the app's camera loop
             result = tracker.push_frame(image, timestamp=timestamp)
             if result.pose_valid and result.pose is not None:

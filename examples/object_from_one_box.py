@@ -9,7 +9,7 @@ In object mode the first frame needs the object's mask or box. From the next fra
 projects the map's object points with the tracked pose and the camera intrinsics: each result
 carries ``region`` (the object's box, a context box 50 px larger, a mask; HELD while tracking is
 lost) and ``T_cam_object``, the object's frame (origin at its centre, axes of keyframe 0) in the
-camera's — where an AR app draws content anchored to the object. ``tracker.object_frame.extent``
+camera's — where an AR app draws content anchored to the object. ``tracker.object.frame.extent``
 is an oriented box around the object's points. A ``Segmenter`` (SAM 2, an on-device model) can
 refine each predicted region into a mask: see ``docs/object_tracking.md``.
 """
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> Outcome:
                 u, v = result.intrinsics.project(result.T_cam_object[:3, 3]) + 0.5
                 x0, y0, x1, y1 = region.box
                 anchor_in_view = bool(x0 <= u <= x1 and y0 <= v <= y1)
-        anchor = tracker.object_frame
+        anchor = tracker.object.frame
     backend.close()
 
     print(f"{sum(sources.values())} frames, regions: {dict(sources)}")

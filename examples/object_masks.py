@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> Outcome:
 
     count, valid, keyframe_frames = 0, 0, []
     with open_tracker(config, backend, camera=camera) as tracker:
-        tracker.on_keyframe(lambda event: keyframe_frames.append(event.frame_index))
+        tracker.events.on_keyframe(lambda event: keyframe_frames.append(event.frame_index))
         for image, timestamp, mask, box in frames:
             result = tracker.push_frame(image, timestamp=timestamp, mask=mask, bbox=box)
             count += 1

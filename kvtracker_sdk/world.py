@@ -5,8 +5,8 @@ camera). Three inputs make it an AR-ready world (``tracking/world/world_alignmen
 
 * depth frames registered to the colour frames (``push_frame(depth=...)``): the map's predicted
   depth is aligned to the sensor's at every keyframe, and the world is in metres;
-* a known length (``Tracker.set_object_height`` / ``set_known_distance``): the world is rescaled
-  once so that the length measures what the app says;
+* a known length (``tracker.world.set_object_height`` / ``set_known_distance``): the world is
+  rescaled once so that the length measures what the app says;
 * gravity (``push_frame(gravity=...)``): the world is rotated so that its z axis points up (its x
   axis is keyframe 0's viewing direction made horizontal, y = z x x: REP 103's x forward, y left,
   z up).

@@ -106,14 +106,15 @@ def _open_bag(live: LiveOutputs, path: Path, tracker: Tracker, state: CliState,
         return
     bag = live.bag
     bag.write_map(tracker.keyframe_map)  # a map loaded before the run
-    subscriptions.append(tracker.on_map_updated(lambda _e: bag.write_map(tracker.keyframe_map)))
+    subscriptions.append(
+        tracker.events.on_map_updated(lambda _e: bag.write_map(tracker.keyframe_map)))
     live.observers.append(lambda f, r: bag.write_frame(r, f.image.shape[1], f.image.shape[0]))
 
 
 def _close(live: LiveOutputs, tracker: Tracker, subscriptions: list[Any], state: CliState,
            *, keep: bool, hold: bool) -> None:
     for subscription in subscriptions:
-        tracker.unregister(subscription)
+        tracker.events.unregister(subscription)
     if live.bag is not None:
         if keep:
             live.bag.write_map(tracker.keyframe_map)  # the final map

@@ -49,7 +49,7 @@ def _anchor(frame: ObjectFrame) -> dict[str, Any]:
 
 def object_document(tracker: Tracker, results: list[FrameResult]) -> dict[str, Any]:
     """The JSON document of ``object.json`` (see the module docstring)."""
-    frame = tracker.object_frame
+    frame = tracker.object.frame
     used = {r.object_frame.map_generation: r.object_frame for r in results
             if r.object_frame is not None}
     return {

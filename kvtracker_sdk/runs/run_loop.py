@@ -189,11 +189,11 @@ def run_frames(
     """Push ``frames`` into ``tracker``; ``before_frame``/``after_frame`` are the sink's hooks."""
     record = RunRecord(initial_state=tracker.state, bad_frame_policy=on_bad_frame)
     subscriptions = [
-        tracker.on_state_change(record.state_changes.append),
-        tracker.on_keyframe(record.keyframes.append),
+        tracker.events.on_state_change(record.state_changes.append),
+        tracker.events.on_keyframe(record.keyframes.append),
     ]
     if on_state_change is not None:
-        subscriptions.append(tracker.on_state_change(on_state_change))
+        subscriptions.append(tracker.events.on_state_change(on_state_change))
     stop = _GracefulStop()
     start = time.perf_counter()
     try:
@@ -225,7 +225,7 @@ def run_frames(
                          frames=record.num_frames)
         record.wall_seconds = time.perf_counter() - start
         for subscription in subscriptions:
-            tracker.unregister(subscription)
+            tracker.events.unregister(subscription)
     if not record.interrupted and record.failure is None:
         tracker.wait_for_map(timeout=None)  # an asynchronous rebuild still running belongs in the map
     record.num_keyframes = tracker.map_status.num_keyframes

@@ -65,7 +65,7 @@ def open_tracker(
         return Tracker(config, backend, camera=intrinsics, segmenter=segmenter)
     tracker = Tracker.from_map(load_map, backend, config, rebuild=rebuild, camera=intrinsics)
     if segmenter is not None:
-        tracker.set_segmenter(segmenter)
+        tracker.object.set_segmenter(segmenter)
     return tracker
 
 

@@ -5,15 +5,22 @@
 rebuilds). Events are queued while the tracker's lock is held and delivered after it is released,
 on the calling thread (``events``). Maps are saved, loaded and exported through ``persistence``.
 
+The members an app needs less often are grouped in thin views over the tracker, each in its own
+module and owning no state or lock: ``events`` (callback registration, ``tracker_events``),
+``live`` (the live intake's results and counters, ``tracker_live``), ``object`` (object mode's
+frame, region and segmenter, ``tracker_object``), ``world`` (known sizes that make the world
+metric, ``tracker_world``) and ``export`` (point cloud, trajectory, ``tracker_export``). The
+names they replaced still work for one release, with a warning (``tracker_renames``).
+
 Thread safety: every public method may be called from any thread. ``push_frame`` calls are
 serialised; ``snapshot()``, ``get_pose``, ``state``, ``reason``, ``map_status`` and
 ``keyframe_map`` read immutable values and never block on a frame or a rebuild. Methods that wait
-for a rebuild (``wait_for_map``, ``save_map``, ``set_backend``, exports) wait *without* the lock, so
-``push_frame`` on a camera thread never stalls behind them.
+for a rebuild (``wait_for_map``, ``save_map``, ``set_backend``, ``export``) wait *without* the
+lock, so ``push_frame`` on a camera thread never stalls behind them.
 
 Backend failures never leave ``push_frame`` (``failures``): a failed tracking pass gives a result
 with ``error`` set, a failed mapping pass keeps the current map and backs off; both send an
-``on_backend_failed`` event.
+``events.on_backend_failed`` event.
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,7 +50,7 @@ from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess.undistort import Undistorter
-from kvtracker_sdk.tracking.core.events import EventBus, EventSource
+from kvtracker_sdk.tracking.core.events import EventBus
 from kvtracker_sdk.tracking.core.frame_input import (
     FramePreparer,
     PreparedFrame,
@@ -52,7 +59,7 @@ from kvtracker_sdk.tracking.core.frame_input import (
     to_rgb,
 )
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
-from kvtracker_sdk.tracking.live.live_intake import LiveIntake, LiveStats
+from kvtracker_sdk.tracking.live.live_intake import LiveIntake
 from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop, Step
 from kvtracker_sdk.tracking.loop.states import TrackingEvent
 from kvtracker_sdk.tracking.object.frame_mode import (
@@ -65,13 +72,17 @@ from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, R
 from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
 from kvtracker_sdk.tracking.persistence.tracker_maps import ConfigOverride, PathLike
+from kvtracker_sdk.tracking.tracker_events import TrackerEvents
+from kvtracker_sdk.tracking.tracker_export import TrackerExport
+from kvtracker_sdk.tracking.tracker_live import TrackerLive
+from kvtracker_sdk.tracking.tracker_object import TrackerObject, checked_segmenter
+from kvtracker_sdk.tracking.tracker_renames import renamed_member
+from kvtracker_sdk.tracking.tracker_world import TrackerWorld
 from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
-from kvtracker_sdk.tracking.world.world_alignment import WorldChange, check_gravity
+from kvtracker_sdk.tracking.world.world_alignment import check_gravity
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,
-    ObjectFrame,
-    ObjectRegion,
     Pose,
     StateReason,
     TrackedPose,
@@ -89,17 +100,23 @@ def _ms(since: float) -> float:
     return (time.perf_counter() - since) * 1e3
 
 
-class Tracker(EventSource):
+class Tracker:
     """Tracks a camera (scene mode) or an object (object mode) from RGB frames.
 
     ``Tracker(config, backend)``: ``config`` is a ``TrackerConfig`` (or a dict of its fields, or
     None for defaults); ``backend`` implements ``kvtracker_sdk.backends.base.Backend``. The tracker
     does not close a backend it was given; it closes one it created (``from_pretrained``).
-    Callbacks (``on_*``, see ``events.EventSource``) run on the thread that called the method
-    causing them (see ``events``). ``camera``: the input images' intrinsics for the session
-    (``set_camera`` changes them; ``push_frame(camera=...)`` overrides them for one frame);
+    Callbacks (``events.on_*``) run on the thread that called the method causing them (see
+    ``core/events.py``). ``camera``: the input images' intrinsics for the session (the
+    ``camera`` property changes them; ``push_frame(camera=...)`` overrides them for one frame);
     distorted frames are undistorted. ``segmenter``: object mode's ``Segmenter`` (optional; see
-    ``set_segmenter``).
+    ``object.set_segmenter``).
+
+    Members by group: frames in (``push_frame``, ``submit``); the session (``initialize``,
+    ``reset``, ``close``, ``set_backend``, ``camera``); reading (``snapshot``, ``state``,
+    ``reason``, ``get_pose``, ``get_tracked_pose``, ``keyframe_map``, ``map_status``, ``config``,
+    ``backend``); maps (``from_map``, ``save_map``, ``wait_for_map``); and the views ``events``,
+    ``live``, ``object``, ``world``, ``export``.
     """
 
     def __init__(
@@ -134,7 +151,7 @@ class Tracker(EventSource):
         self._intake: LiveIntake | None = None  # made by the first submit()
         self._intake_lock = threading.Lock()  # never the tracker's lock: submit must not wait
         self._object_mode = cfg.mode is TrackingMode.OBJECT
-        self._mode: FrameMode = SceneFrames(_checked_segmenter(segmenter))
+        self._mode: FrameMode = SceneFrames(checked_segmenter(segmenter))
         if self._object_mode:  # the object's region before and after each step
             regions = RegionPropagator(margin=cfg.object.crop_margin_px,
                                        models=self._keeper.objects)
@@ -179,14 +196,17 @@ class Tracker(EventSource):
     # ------------------------------------------------------------------ read-only views
     @property
     def config(self) -> TrackerConfig:
+        """The configuration in use (an unset resolution resolved to the family's default)."""
         return self._config
 
     @property
     def backend(self) -> Backend:
+        """The backend running the network now (``set_backend`` swaps it)."""
         return self._loop.backend
 
     @property
     def state(self) -> TrackingState:
+        """The tracking state; read it with ``reason`` at once through ``snapshot()``."""
         return self._loop.state
 
     @property
@@ -224,75 +244,53 @@ class Tracker(EventSource):
 
     @property
     def camera(self) -> Camera | None:
-        """The session's given intrinsics (None: predicted or estimated per frame)."""
+        """The session's given intrinsics (None: predicted or estimated per frame). Assign a
+        ``Camera`` (or None, to forget them) to change them from the next frame on; InputError
+        for anything else."""
         return self._camera
 
-    @property
-    def object_frame(self) -> ObjectFrame | None:
-        """Object mode: the object's frame and extent in the world frame (``ObjectFrame``: origin
-        at the object centre; z along ``up``, the support plane's normal, for an object standing
-        on one, else axes of keyframe 0; an oriented box of the fused object points); None in
-        scene mode and before the map holds object points."""
-        if not self._object_mode:
-            return None
-        with self._call():
-            return self._mode.object_frame(self._keeper.map)
-
-    @property
-    def object_region(self) -> ObjectRegion | None:
-        """Object mode: the region of the last frame (``FrameResult.region``), None before one."""
-        return self._mode.last_region
-
-    def set_segmenter(self, segmenter: Segmenter | None) -> None:
-        """Object mode: ask ``segmenter`` for the object's mask in every frame pushed without a
-        mask or box, prompting it with the predicted region (None: use the prediction itself)."""
-        checked = _checked_segmenter(segmenter)
-        with self._call():
-            self._mode.segmenter = checked
-
-    # ------------------------------------------------------------------ metric scale
-    def set_object_height(self, height_m: float, *, uncertainty_m: float = 0.0) -> None:
-        """Object mode: the object's true height in metres. Once the map holds object points
-        (at once, or after the next frames) the world is rescaled so that the object measures
-        ``height_m`` along up (keyframe 0's image up before the world is levelled), with an
-        ``on_world_frame_changed`` event (reason METRIC_SCALE) carrying the rescaling. A world
-        already metric by depth only reports it (``map_status.scale_estimates``)."""
-        height, sigma = _checked_length(height_m, uncertainty_m)
-        with self._call():
-            if not self._object_mode:
-                raise StateError("set_object_height needs object mode; use set_known_distance")
-            self._loop.aligner.state_object_height(height, sigma)
-            self._apply_world(self._loop.aligner.pending_object_height(
-                self._keeper.map, self._loop.snapshot.frame_index))
-
-    def set_known_distance(
-        self, length_m: float, a: Any, b: Any, *, uncertainty_m: float = 0.0
-    ) -> None:
-        """The distance between two things the tracker reported is ``length_m`` metres: ``a``
-        and ``b`` are world points [3] or poses (``Pose``/``TrackedPose``/4x4 ``T_world_cam``:
-        their camera centres), in the current world. The world is rescaled (the event as in
-        ``set_object_height``); StateError without a map. A world already metric by depth only
-        reports it."""
-        length, sigma = _checked_length(length_m, uncertainty_m)
-        p, q = _world_point(a), _world_point(b)
-        with self._call():
-            change = self._loop.aligner.state_length(
-                self._keeper.map, length, float(np.linalg.norm(p - q)), 0.0, sigma,
-                self._loop.snapshot.frame_index)
-            self._apply_world(change)
-
-    def _apply_world(self, change: WorldChange | None) -> None:
-        """Under the lock: apply a world change (from an app's statement) and move the region
-        poses along."""
-        if change is not None:
-            self._loop.apply_world(change, self._loop.snapshot.frame_index)
-            self._mode.forget_poses()
-
-    def set_camera(self, camera: Camera | None) -> None:
-        """Give (or with None, forget) the input images' intrinsics from the next frame on."""
+    @camera.setter
+    def camera(self, camera: Camera | None) -> None:
         checked = _checked_camera(camera)
         with self._call():
             self._camera = checked
+
+    # ------------------------------------------------------------------ the grouped members
+    # Each view is made on access: it holds the tracker, and the tracker holds no view, so no
+    # reference cycle keeps a dropped tracker (and its map) alive until the garbage collector runs.
+    @property
+    def events(self) -> TrackerEvents:
+        """Callback registration: ``on_state_change``, ``on_keyframe``, ... and ``unregister``
+        (``tracker_events``)."""
+        return TrackerEvents(self._events)
+
+    @property
+    def live(self) -> TrackerLive:
+        """The live intake's ``latest()``, ``stats`` and ``wait_idle()`` (``tracker_live``)."""
+        return TrackerLive(self)
+
+    @property
+    def object(self) -> TrackerObject:
+        """Object mode's ``frame``, ``region`` and ``set_segmenter()`` (``tracker_object``)."""
+        return TrackerObject(self)
+
+    @property
+    def world(self) -> TrackerWorld:
+        """Known sizes that make the world metric: ``set_known_distance()``,
+        ``set_object_height()`` (``tracker_world``)."""
+        return TrackerWorld(self)
+
+    @property
+    def export(self) -> TrackerExport:
+        """The map as files: ``point_cloud()``, ``trajectory()`` (``tracker_export``)."""
+        return TrackerExport(self)
+
+    if not TYPE_CHECKING:  # hidden from type checkers: an old name in the SDK is a type error
+
+        def __getattr__(self, name: str) -> Any:
+            """Only for names the class lacks: the renamed members' old spellings, with a
+            ``DeprecationWarning`` (``tracker_renames``)."""
+            return renamed_member(self, name)
 
     # ------------------------------------------------------------------ session control
     def initialize(self, map: PathLike | None = None, *, rebuild: bool = False) -> None:
@@ -372,14 +370,6 @@ class Tracker(EventSource):
             path, kf_map, self.backend.info, self._config, camera=self._map_camera()
         )
 
-    def export_point_cloud(self, path: PathLike, **options: Any) -> int:
-        """The map's point cloud as PLY; ``options`` and return: ``persistence``'s."""
-        return persistence.export_point_cloud(self._settled_map(), path, **options)
-
-    def export_trajectory(self, path: PathLike) -> int:
-        """The keyframes' world poses as a TUM trajectory; returns the number of poses."""
-        return persistence.export_trajectory(self._settled_map(), path)
-
     def wait_for_map(self, timeout: float | None = None) -> bool:
         """Wait for the rebuilds pending now (and a keyframe waiting for one) and install them;
         True when they are, False if ``timeout`` seconds passed first. Frames keep flowing."""
@@ -402,7 +392,7 @@ class Tracker(EventSource):
     def __enter__(self) -> Tracker:
         return self
 
-    def __exit__(self, *exc_info: object) -> None:
+    def __exit__(self, *exc_info: Any) -> None:  # Any: in this class "object" is the view
         self.close()
 
     # ------------------------------------------------------------------ live intake
@@ -418,8 +408,9 @@ class Tracker(EventSource):
         The frame as in ``push_frame`` (HxWx3 uint8 RGB; ``color="bgr"`` for OpenCV frames).
 
         The worker always tracks the newest frame; one still waiting when a newer arrives is
-        dropped and counted. Results: ``on_result`` callbacks and ``latest()``; counters and
-        latency: ``stats``. ``timestamp`` defaults to the wall-clock time now (capture time).
+        dropped and counted. Results: ``events.on_result`` callbacks and ``live.latest()``; counters
+        and latency: ``live.stats``. ``timestamp`` defaults to the wall-clock time now (capture
+        time).
         For live use, build the tracker with ``threading={"async_mapping": True}`` so that
         rebuilds do not pause tracking. ``depth``, ``depth_scale``, ``gravity``: as in
         ``push_frame`` (a depth frame or gravity reading travels with its colour frame).
@@ -427,22 +418,6 @@ class Tracker(EventSource):
         self._live().submit(image, timestamp, mask=mask, bbox=bbox, camera=camera,
                             captured_at=captured_at, color=color, depth=depth,
                             depth_scale=depth_scale, gravity=gravity)
-
-    def latest(self) -> FrameResult | None:
-        """The live worker's most recent result (None before the first)."""
-        intake = self._intake
-        return None if intake is None else intake.latest()
-
-    @property
-    def stats(self) -> LiveStats:
-        """Live intake counters: submitted, processed, dropped, delivered FPS, latency."""
-        intake = self._intake
-        return LiveStats.empty() if intake is None else intake.stats
-
-    def wait_idle(self, timeout: float | None = None) -> bool:
-        """Wait until the live worker has no frame pending or in progress."""
-        intake = self._intake
-        return True if intake is None else intake.wait_idle(timeout)
 
     def _live(self) -> LiveIntake:
         intake = self._intake
@@ -487,7 +462,7 @@ class Tracker(EventSource):
         The result's ``pose`` is None without a map (INIT, MAPPING) or when the backend failed on
         this frame (``error``); ``pose_valid`` is False while relocalising or for a low-confidence
         frame; ``keyframe_id`` is set when the frame became a keyframe in this call (synchronous
-        mapping; else the ``on_keyframe`` event reports it later). Bad input raises an
+        mapping; else the ``events.on_keyframe`` event reports it later). Bad input raises an
         ``InputError`` subclass before anything changes; backend failures never raise.
         """
         start = time.perf_counter()
@@ -637,41 +612,6 @@ def _check_cache_dtype(config: TrackerConfig, backend: BackendInfo) -> None:
             f"cache_dtype {config.cache_dtype!r} needs the PyTorch backend; the {backend.backend} "
             f"backend reads dense caches only (cache_dtype 'backend')"
         )
-
-
-def _checked_length(length_m: Any, uncertainty_m: Any) -> tuple[float, float]:
-    """(length, 1-sigma) in metres, validated: InputError unless finite, length > 0, sigma >= 0."""
-    try:
-        length, sigma = float(length_m), float(uncertainty_m)
-    except (TypeError, ValueError, OverflowError) as exc:
-        raise InputError(f"a known length must be numbers, got {length_m!r}") from exc
-    if not (np.isfinite(length) and length > 0 and np.isfinite(sigma) and sigma >= 0):
-        raise InputError(f"a known length needs length > 0 and uncertainty >= 0 (metres), got "
-                         f"{length}, {sigma}")
-    return length, sigma
-
-
-def _world_point(value: Any) -> np.ndarray:
-    """A world point [3] from a point, a ``Pose``/``TrackedPose`` or a 4x4 pose (its centre)."""
-    if isinstance(value, TrackedPose):
-        value = value.pose
-    if isinstance(value, Pose):
-        return np.asarray(value.translation, dtype=np.float64)
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"a known distance needs points [3] or poses, got {value!r}") from exc
-    if array.shape == (4, 4):
-        array = array[:3, 3]
-    if array.shape != (3,) or not np.isfinite(array).all():
-        raise InputError(f"a known distance needs finite points [3] or 4x4 poses, got {array!r}")
-    return array
-
-
-def _checked_segmenter(segmenter: Any) -> Segmenter | None:
-    if segmenter is not None and not isinstance(segmenter, Segmenter):
-        raise InputError(f"segmenter must have a segment(image, prompt) method, got {segmenter!r}")
-    return segmenter
 
 
 def _checked_camera(camera: Any) -> Camera | None:

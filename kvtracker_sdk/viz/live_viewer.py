@@ -113,8 +113,8 @@ class Viewer:
         """Follow ``tracker``'s state changes and map updates (and show its current map)."""
         self.log_map(tracker.keyframe_map)
         return [
-            tracker.on_state_change(self.log_state_change),
-            tracker.on_map_updated(lambda _event: self.log_map(tracker.keyframe_map)),
+            tracker.events.on_state_change(self.log_state_change),
+            tracker.events.on_map_updated(lambda _event: self.log_map(tracker.keyframe_map)),
         ]
 
     # ------------------------------------------------------------------ updates

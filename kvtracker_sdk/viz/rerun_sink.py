@@ -100,8 +100,8 @@ class RerunSink:
     def attach(self, tracker: Tracker) -> list[Subscription]:
         """Log ``tracker``'s state changes and map updates as they happen."""
         return [
-            tracker.on_state_change(self.log_state_change),
-            tracker.on_map_updated(lambda _event: self.log_map(tracker.keyframe_map)),
+            tracker.events.on_state_change(self.log_state_change),
+            tracker.events.on_map_updated(lambda _event: self.log_map(tracker.keyframe_map)),
         ]
 
     def set_time(self, frame_index: int, timestamp: float | None) -> None:

@@ -41,10 +41,10 @@ class Session:
     maps: list[MapUpdatedEvent] = field(default_factory=list)
 
     def listen(self, tracker: Tracker) -> Session:
-        tracker.on_state_change(self.states.append)
-        tracker.on_keyframe(self.keyframes.append)
-        tracker.on_keyframe_rejected(self.rejected.append)
-        tracker.on_map_updated(self.maps.append)
+        tracker.events.on_state_change(self.states.append)
+        tracker.events.on_keyframe(self.keyframes.append)
+        tracker.events.on_keyframe_rejected(self.rejected.append)
+        tracker.events.on_map_updated(self.maps.append)
         return self
 
     def moves(self) -> list[tuple[str, str, str, int | None]]:

@@ -62,7 +62,7 @@ def test_submit_takes_the_color_order_too() -> None:
     backend = _Recording(orbit(60), seed=4)
     with make_tracker(backend) as tracker:
         tracker.submit(frame.image[..., ::-1].copy(), timestamp=frame.timestamp, color="bgr")
-        assert tracker.wait_idle(WAIT_S)
+        assert tracker.live.wait_idle(WAIT_S)
     reference = _Recording(orbit(60), seed=4)
     with make_tracker(reference) as tracker:
         tracker.push_frame(frame.image, timestamp=frame.timestamp)

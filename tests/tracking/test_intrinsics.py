@@ -71,7 +71,7 @@ def test_given_intrinsics_pass_through_undistorted(ground_truth: GroundTruth) ->
     with Tracker(TrackerConfig(), backend, camera=session) as tracker:
         first = tracker.push_frame(frames[0].image, timestamp=frames[0].timestamp)
         second = tracker.push_frame(frames[1].image, camera=per_frame)
-        tracker.set_camera(None)
+        tracker.camera = None
         third = tracker.push_frame(frames[2].image)
     assert first.intrinsics == session.undistorted()  # the frame was undistorted first
     assert first.intrinsics_source is IntrinsicsSource.GIVEN

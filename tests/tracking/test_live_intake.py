@@ -69,13 +69,13 @@ def test_the_worker_takes_the_newest_frame_and_counts_the_dropped(gated: GatedBa
     frames = list(gated.inner.frames(SIZE, stop=8))
     delivered: list[FrameResult] = []
     with Tracker(TrackerConfig(), gated) as tracker:
-        tracker.on_result(delivered.append)
-        assert tracker.latest() is None and tracker.stats == LiveStats.empty()
+        tracker.events.on_result(delivered.append)
+        assert tracker.live.latest() is None and tracker.live.stats == LiveStats.empty()
         tracker.submit(frames[0].image, timestamp=frames[0].timestamp)
         assert gated.entered.get(timeout=WAIT) == 0  # the worker is inside the mapping pass
         for frame in frames[1:4]:  # while it is busy: 1 and 2 are replaced, 3 waits
             tracker.submit(frame.image, timestamp=frame.timestamp)
-        stats = tracker.stats
+        stats = tracker.live.stats
         assert (stats.submitted, stats.processed, stats.dropped, stats.pending) == (4, 0, 2, 1)
         assert stats.in_progress == 1 and _balanced(stats)
 
@@ -83,13 +83,13 @@ def test_the_worker_takes_the_newest_frame_and_counts_the_dropped(gated: GatedBa
         assert gated.entered.get(timeout=WAIT) == 3  # the newest available, not 1
         for frame in frames[4:7]:
             tracker.submit(frame.image, timestamp=frame.timestamp)
-        assert _balanced(tracker.stats)
+        assert _balanced(tracker.live.stats)
         gated.release.release()
         assert gated.entered.get(timeout=WAIT) == 6
         gated.release.release()
-        assert tracker.wait_idle(timeout=WAIT)
-        stats = tracker.stats
-        latest = tracker.latest()
+        assert tracker.live.wait_idle(timeout=WAIT)
+        stats = tracker.live.stats
+        latest = tracker.live.latest()
     assert (stats.submitted, stats.processed, stats.dropped, stats.pending) == (7, 3, 4, 0)
     assert stats.submitted == stats.processed + stats.dropped  # idle: nothing pending
     assert stats.failed == 0 and stats.delivered == 3 and stats.drop_rate == pytest.approx(4 / 7)
@@ -104,11 +104,11 @@ def test_bad_frames_are_reported_not_raised_and_the_intake_closes(gated: GatedBa
     errors: list[BaseException] = []
     frame = next(iter(gated.inner.frames(SIZE, stop=1)))
     tracker = Tracker(TrackerConfig(), gated)
-    tracker.on_frame_error(errors.append)
+    tracker.events.on_frame_error(errors.append)
     tracker.submit(np.zeros((4, 4), np.uint8))  # not an RGB image: the worker refuses it
-    assert tracker.wait_idle(timeout=WAIT)
+    assert tracker.live.wait_idle(timeout=WAIT)
     assert len(errors) == 1 and isinstance(errors[0], InputError)
-    stats = tracker.stats
+    stats = tracker.live.stats
     assert (stats.submitted, stats.processed, stats.failed, stats.delivered) == (1, 1, 1, 0)
 
     tracker.submit(frame.image)  # enters the mapping pass and waits there
@@ -119,7 +119,7 @@ def test_bad_frames_are_reported_not_raised_and_the_intake_closes(gated: GatedBa
     gated.release.release()
     closer.join(WAIT)
     assert not closer.is_alive()
-    stats = tracker.stats
+    stats = tracker.live.stats
     assert (stats.submitted, stats.processed, stats.dropped, stats.pending) == (3, 2, 1, 0)
     with pytest.raises(StateError):
         tracker.submit(frame.image)
@@ -135,11 +135,11 @@ def test_the_producer_never_takes_the_trackers_lock(gated: GatedBackend) -> None
         assert gated.entered.get(timeout=WAIT) == 0
         for frame in frames[1:]:
             tracker.submit(frame.image, timestamp=frame.timestamp)  # would deadlock if it waited
-        assert tracker.stats.dropped == len(frames) - 2
+        assert tracker.live.stats.dropped == len(frames) - 2
         gated.release.release()
         assert gated.entered.get(timeout=WAIT) == len(frames) - 1
         gated.release.release()
-        assert tracker.wait_idle(timeout=WAIT)
+        assert tracker.live.wait_idle(timeout=WAIT)
 
 
 def test_live_callbacks_are_subscriptions_on_the_trackers_one_callback_system() -> None:
@@ -154,16 +154,16 @@ def test_live_callbacks_are_subscriptions_on_the_trackers_one_callback_system() 
         raise RuntimeError("an app's bug")
 
     with Tracker(TrackerConfig(), backend) as tracker:
-        handle = tracker.on_result(results.append)
-        tracker.on_result(broken)
-        tracker.on_frame_error(errors.append)
+        handle = tracker.events.on_result(results.append)
+        tracker.events.on_result(broken)
+        tracker.events.on_frame_error(errors.append)
         tracker.submit(frames[0].image, timestamp=frames[0].timestamp)
-        assert tracker.wait_idle(timeout=WAIT)
+        assert tracker.live.wait_idle(timeout=WAIT)
         tracker.submit(np.zeros((4, 4), np.uint8))
-        assert tracker.wait_idle(timeout=WAIT)
-        assert tracker.unregister(handle) and not tracker.unregister(handle)
+        assert tracker.live.wait_idle(timeout=WAIT)
+        assert tracker.events.unregister(handle) and not tracker.events.unregister(handle)
         tracker.submit(frames[1].image, timestamp=frames[1].timestamp)
-        assert tracker.wait_idle(timeout=WAIT)
+        assert tracker.live.wait_idle(timeout=WAIT)
         assert [r.frame_index for r in results] == [0]  # not the one after unregister
         assert len(errors) == 1 and isinstance(errors[0], InputError)
-        assert tracker.stats.processed == 3
+        assert tracker.live.stats.processed == 3

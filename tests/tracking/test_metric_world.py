@@ -178,7 +178,7 @@ def test_a_world_change_event_carries_the_transform_of_poses_and_points() -> Non
     frames = list(backend.frames(SIZE, stop=2, textured=False))
     with make_tracker(backend) as tracker:
         events: list = []
-        tracker.on_world_frame_changed(events.append)
+        tracker.events.on_world_frame_changed(events.append)
         tracker.push_frame(frames[0].image)
         before = tracker.keyframe_map.keyframes[0]  # type: ignore[union-attr]
         tilted = np.array([0.3, 9.7, 0.5])  # not the camera's y: the world must turn
@@ -213,15 +213,15 @@ def test_a_known_distance_makes_the_world_metric(tum: GroundTruth) -> None:
     run, tracker = drive(backend, frames=301)
     with tracker:
         with pytest.raises(InputError):
-            tracker.set_known_distance(-1.0, [0, 0, 0], [1, 0, 0])
+            tracker.world.set_known_distance(-1.0, [0, 0, 0], [1, 0, 0])
         with pytest.raises(InputError):
-            tracker.set_known_distance(1.0, [0, 0, 0], [0, 0, 0])
+            tracker.world.set_known_distance(1.0, [0, 0, 0], [0, 0, 0])
         events: list = []
-        tracker.on_world_frame_changed(events.append)
+        tracker.events.on_world_frame_changed(events.append)
         first = run.results[0].pose
         last = tracker.get_tracked_pose()
         length = float(np.linalg.norm(truth[300, :3, 3] - truth[0, :3, 3]))  # 1.45 m
-        tracker.set_known_distance(length, first, last)
+        tracker.world.set_known_distance(length, first, last)
         units = world_units_per_metre(backend, tracker.keyframe_map)  # type: ignore[arg-type]
         status = tracker.map_status
         pose = tracker.get_pose()
@@ -243,8 +243,8 @@ def test_object_height_on_frame_zero() -> None:
     rng = np.random.default_rng(0)
     with make_tracker(backend, mode="object") as tracker:
         events: list = []
-        tracker.on_world_frame_changed(events.append)
-        tracker.set_object_height(height)
+        tracker.events.on_world_frame_changed(events.append)
+        tracker.world.set_object_height(height)
         for frame in backend.frames(SIZE, stop=8, textured=False, with_mask=True):
             tracker.push_frame(frame.image, mask=frame.mask,
                                gravity=gravity_reading(frame.T_world_cam, rng=rng))
@@ -254,14 +254,14 @@ def test_object_height_on_frame_zero() -> None:
     assert abs(units - 1.0) <= 0.02
     assert status.world.scale_source is ScaleSource.KNOWN_SIZE and status.world.gravity_aligned
     with make_tracker(backend) as scene, pytest.raises(StateError):
-        scene.set_object_height(0.5)
+        scene.world.set_object_height(0.5)
 
 
 def test_a_known_size_is_only_checked_in_a_world_metric_by_depth(tum: GroundTruth) -> None:
     backend = SimulatedBackend(tum)
     run, tracker = drive(backend, frames=2, depth_every=1)
     with tracker:
-        tracker.set_known_distance(1.0, [0, 0, 0], [0.5, 0, 0])  # says 2 m... per metre: wrong
+        tracker.world.set_known_distance(1.0, [0, 0, 0], [0.5, 0, 0])  # 2 m per metre: wrong
         status = tracker.map_status
     assert run.world_events == [] and status.world.scale_source is ScaleSource.DEPTH
     known = [e for e in status.scale_estimates if e.source is ScaleSource.KNOWN_SIZE]
@@ -375,9 +375,9 @@ def test_live_frames_carry_their_depth_and_gravity() -> None:
             tracker.submit(frame.image, frame.timestamp,
                            depth=sensor_depth(backend.scene, frame.T_world_cam, SIZE, rng=rng),
                            depth_scale=1.0, gravity=gravity_reading(frame.T_world_cam, rng=rng))
-            assert tracker.wait_idle(60.0)  # one at a time: none dropped
+            assert tracker.live.wait_idle(60.0)  # one at a time: none dropped
         world = tracker.map_status.world
-        assert tracker.stats.processed == 3
+        assert tracker.live.stats.processed == 3
     assert world.scale_source is ScaleSource.DEPTH and world.gravity_aligned
 
 

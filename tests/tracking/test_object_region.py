@@ -54,7 +54,7 @@ def run(backend: SimulatedBackend, *, box_every_frame: bool, stop: int | None = 
             out.session.results.append(result)
             out.session.truth.append(frame.T_world_cam)
             out.truth_boxes.append(truth)
-        out.object_frame = tracker.object_frame
+        out.object_frame = tracker.object.frame
         out.keyframe0 = tracker.keyframe_map.keyframes[0].T_world_cam
     return out
 
@@ -148,7 +148,7 @@ class TrueMaskSegmenter:
 def test_a_segmenter_answers_the_predicted_prompt(backend: SimulatedBackend) -> None:
     segmenter = TrueMaskSegmenter(backend, fail_at={5})
     with make_tracker(backend, mode="object") as tracker:
-        tracker.set_segmenter(segmenter)
+        tracker.object.set_segmenter(segmenter)
         results = []
         for frame in backend.frames(SIZE, textured=False, stop=40):
             box = backend.scene.object_box(frame.T_world_cam, SIZE) if frame.index == 0 else None
@@ -171,12 +171,12 @@ def test_the_first_object_frame_needs_a_mask_or_a_box(backend: SimulatedBackend)
     with make_tracker(backend, mode="object") as tracker:
         with pytest.raises(MaskError, match="first frame"):
             tracker.push_frame(frame.image)
-        assert tracker.state.value == "INIT" and tracker.object_region is None
+        assert tracker.state.value == "INIT" and tracker.object.region is None
 
 
 def test_scene_mode_reports_no_region(backend: SimulatedBackend) -> None:
     with make_tracker(backend) as tracker:
         frames = backend.frames(SIZE, textured=False, stop=2)
         results = [tracker.push_frame(f.image, timestamp=f.timestamp) for f in frames]
-        assert tracker.object_frame is None
+        assert tracker.object.frame is None
     assert all(r.region is None and r.T_cam_object is None for r in results)

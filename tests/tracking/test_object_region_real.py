@@ -37,12 +37,12 @@ def test_one_box_gives_every_real_frame_a_region(
     weights = shared_path("golden", family, "weights.safetensors")
     with Tracker.from_pretrained(weights, mode="object", resolution=224) as tracker:
         if family == "pi3":  # random Pi3 points fit no pinhole: give the published intrinsics
-            tracker.set_camera(Camera(520.9, 521.0, 325.1, 249.7, 640, 480))
+            tracker.camera = Camera(520.9, 521.0, 325.1, 249.7, 640, 480)
         results = [
             tracker.push_frame(image, timestamp=stamp, bbox=BOX if i == 0 else None)
             for i, (stamp, image) in enumerate(frames)
         ]
-        object_frame = tracker.object_frame
+        object_frame = tracker.object.frame
     assert len(results) == 20 and all(r.region is not None for r in results)
     assert results[0].region.source is RegionSource.GIVEN and results[0].region.box == BOX
     assert {r.region.source for r in results[1:]} <= {RegionSource.PREDICTED, RegionSource.HELD}

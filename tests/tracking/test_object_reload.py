@@ -58,7 +58,7 @@ def test_an_object_not_in_view_says_a_box_is_needed(desk: Layout, saved: tuple[d
     frames = list(backend.frames(SIZE, textured=False, start=FRAMES, stop=FRAMES + 45))
     with Tracker.from_map(saved[1], backend, {"object": {"search_frames": 8}}) as tracker:
         states = []
-        tracker.on_state_change(states.append)
+        tracker.events.on_state_change(states.append)
         results = [tracker.push_frame(f.image, timestamp=f.timestamp) for f in frames[:20]]
         # the camera looks away for ~29 frames: not found after 8, and the reason says so
         assert [r.reason for r in results[6:8]] == [StateReason.MAP_LOADED,

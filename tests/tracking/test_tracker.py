@@ -84,13 +84,13 @@ def test_callback_errors_never_break_tracking(backend: SimulatedBackend) -> None
         raise RuntimeError("app bug")
 
     with make_tracker(backend, keyframing={"interval_frames": 10}) as tracker:
-        tracker.on_keyframe(broken)
-        tracker.on_state_change(broken)
-        subscription = tracker.on_map_updated(broken)
+        tracker.events.on_keyframe(broken)
+        tracker.events.on_state_change(broken)
+        subscription = tracker.events.on_map_updated(broken)
         session = drive(tracker, backend, stop=30)
         assert all(r.pose_valid for r in session.results)
         assert len(session.keyframes) == 3
-        assert tracker.unregister(subscription) is True
+        assert tracker.events.unregister(subscription) is True
 
 
 def test_async_callbacks_run_on_the_calling_thread(backend: SimulatedBackend) -> None:
@@ -98,8 +98,8 @@ def test_async_callbacks_run_on_the_calling_thread(backend: SimulatedBackend) ->
     with make_tracker(
         backend, threading={"async_mapping": True}, keyframing={"interval_frames": 10}
     ) as tracker:
-        tracker.on_keyframe(lambda _: threads.add(threading.current_thread().name))
-        tracker.on_map_updated(lambda _: threads.add(threading.current_thread().name))
+        tracker.events.on_keyframe(lambda _: threads.add(threading.current_thread().name))
+        tracker.events.on_map_updated(lambda _: threads.add(threading.current_thread().name))
         drive(tracker, backend, stop=60)
         assert tracker.wait_for_map(timeout=30)
     assert threads == {threading.current_thread().name}

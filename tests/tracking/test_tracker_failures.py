@@ -69,7 +69,7 @@ class FlakyBackend(SimulatedBackend):
 
 def _failures(tracker: Tracker) -> list[BackendFailedEvent]:
     events: list[BackendFailedEvent] = []
-    tracker.on_backend_failed(events.append)
+    tracker.events.on_backend_failed(events.append)
     return events
 
 

@@ -271,7 +271,7 @@ def test_save_map_refuses_without_a_map_and_waits_for_a_pending_rebuild(tmp_path
         with pytest.raises(StateError, match="no map"):
             tracker.save_map(path)
         with pytest.raises(StateError, match="no map"):
-            tracker.export_trajectory(tmp_path / "keyframes.txt")
+            tracker.export.trajectory(tmp_path / "keyframes.txt")
         assert os.listdir(tmp_path) == []
         frames = backend.frames(SIZE, stop=12, textured=False)
         tracker.push_frame(next(frames).image)
@@ -322,10 +322,10 @@ def test_exports_write_the_map_in_its_world_frame(sim_saved: Saved, tmp_path: Pa
     plyfile = dev_dependency("plyfile")
     with make_tracker(sim_backend()) as tracker:
         with pytest.raises(StateError, match="no map"):
-            tracker.export_point_cloud(tmp_path / "none.ply")
+            tracker.export.point_cloud(tmp_path / "none.ply")
         tracker.initialize(map=sim_saved.path)
-        poses = tracker.export_trajectory(tmp_path / "keyframes.txt")
-        points = tracker.export_point_cloud(tmp_path / "cloud.ply", min_confidence=0.75)
+        poses = tracker.export.trajectory(tmp_path / "keyframes.txt")
+        points = tracker.export.point_cloud(tmp_path / "cloud.ply", min_confidence=0.75)
     trajectory = read_tum(tmp_path / "keyframes.txt")
     assert poses == len(trajectory) == 4
     np.testing.assert_allclose(trajectory.poses, sim_saved.keyframe_map.poses(), atol=1e-12)

@@ -34,7 +34,7 @@ def test_real_frames_run_end_to_end(frames: list[tuple[float, np.ndarray]], weig
     with Tracker.from_pretrained(
         weights, resolution=224, keyframing={"interval_frames": 5}
     ) as tracker:
-        tracker.on_state_change(
+        tracker.events.on_state_change(
             lambda e: moves.append((e.previous.value, e.state.value, e.reason.value))
         )
         results = [tracker.push_frame(image, timestamp=stamp) for stamp, image in frames]

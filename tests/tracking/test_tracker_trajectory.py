@@ -173,7 +173,7 @@ def test_relocalisation_timeout_policies(
     }
     changes: list[WorldFrameChangedEvent] = []
     with make_tracker(backend, **config) as tracker:
-        tracker.on_world_frame_changed(changes.append)
+        tracker.events.on_world_frame_changed(changes.append)
         session = drive(tracker, backend, stop=320, pace=True)
     assert session.moves()[2:] == expected
     # no pose from a frame of the loss is ever trusted (it used to be: ~1 m errors, pose_valid)

@@ -38,7 +38,6 @@ __all__ = [
     "BackendFailedEvent",
     "EventBus",
     "EventKind",
-    "EventSource",
     "KeyframeEvent",
     "KeyframeRejectedEvent",
     "MapUpdatedEvent",
@@ -307,47 +306,3 @@ class EventBus:
                     ),
                 )
 
-
-class EventSource:
-    """The ``on_*`` registration methods of an object whose ``_events`` is an ``EventBus`` (the
-    ``Tracker``). Each returns a ``Subscription``; callbacks receive the event payload."""
-
-    _events: EventBus
-
-    def on_keyframe(self, callback: Callback) -> Subscription:
-        """``KeyframeEvent``: a frame became a keyframe."""
-        return self._events.register(EventKind.KEYFRAME, callback)
-
-    def on_keyframe_rejected(self, callback: Callback) -> Subscription:
-        """``KeyframeRejectedEvent``: a candidate (or a new map's first frame) was not confident."""
-        return self._events.register(EventKind.KEYFRAME_REJECTED, callback)
-
-    def on_state_change(self, callback: Callback) -> Subscription:
-        """``StateChangeEvent``: one row of the state table was taken."""
-        return self._events.register(EventKind.STATE_CHANGE, callback)
-
-    def on_map_updated(self, callback: Callback) -> Subscription:
-        """``MapUpdatedEvent``: a new map was installed."""
-        return self._events.register(EventKind.MAP_UPDATED, callback)
-
-    def on_world_frame_changed(self, callback: Callback) -> Subscription:
-        """``WorldFrameChangedEvent``: poses from now on are in a new world frame."""
-        return self._events.register(EventKind.WORLD_FRAME_CHANGED, callback)
-
-    def on_backend_failed(self, callback: Callback) -> Subscription:
-        """``BackendFailedEvent``: a mapping or tracking pass failed; tracking carried on."""
-        return self._events.register(EventKind.BACKEND_FAILED, callback)
-
-    def on_result(self, callback: Callback) -> Subscription:
-        """``FrameResult`` of each frame the live intake (``submit``) processed, on its worker
-        thread."""
-        return self._events.register(EventKind.RESULT, callback)
-
-    def on_frame_error(self, callback: Callback) -> Subscription:
-        """The exception the live intake's ``push_frame`` raised on a frame (a bad frame), on its
-        worker thread."""
-        return self._events.register(EventKind.FRAME_ERROR, callback)
-
-    def unregister(self, handle: Subscription | Callback) -> bool:
-        """Remove a subscription (or every registration of a callback)."""
-        return self._events.unregister(handle)

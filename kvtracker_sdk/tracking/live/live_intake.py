@@ -107,8 +107,8 @@ class LiveIntake:
     ) -> None:
         """An adapter over a tracker: ``push_frame`` is its ``Tracker.push_frame`` (the intake
         needs nothing else of it); ``events``: the bus its ``on_result`` / ``on_error``
-        callbacks are registered on (the tracker's, so that ``Tracker.on_result`` and
-        ``unregister`` reach them)."""
+        callbacks are registered on (the tracker's, so that ``tracker.events.on_result``
+        and ``unregister`` reach them)."""
         self._push_frame = push_frame
         self._events = events if events is not None else EventBus()
         self._copy = bool(copy)
