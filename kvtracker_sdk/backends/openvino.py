@@ -68,10 +68,9 @@ class OpenVinoBackend(ExportBackend):
     (None: one per physical core). ``static_shapes``: track on graphs compiled for the
     current map's exact shapes (``openvino_static``; one compile, ~0.3 s for DA3-Small's
     decoder, on the first frame after the map's keyframe count or resolution changes): None
-    (default) = every tracking graph in float32, the encoder only with a bf16/f16 hint (the
-    static decoder's bf16 poses deviate more; ``openvino_runtime.static_graphs``); True = every
-    tracking graph (fastest: DA3-Small bf16 step 1.15x the encoder-only one); False = none; or
-    graph names.
+    (default) = every tracking graph in float32, all but the tracking decoder with a bf16/f16
+    hint (the static decoder's bf16 poses deviate more; ``openvino_runtime.static_graphs``);
+    True = every tracking graph (fastest); False = none; or graph names.
     """
 
     def __init__(
