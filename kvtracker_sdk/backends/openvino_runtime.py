@@ -109,7 +109,8 @@ def static_graphs(
     deviated more from fp32 (DA3-Small, 8 frames: mean 9.4e-3 vs 8.8e-3 dynamic, 6.9e-3 with
     the decoder dynamic; see ``benchmarks/results/runtimes_da3_small_224_n8_openvino_static_run*
     .json``). The heads are static in bf16 as the encoder is: the depth head has no part in the
-    pose, and the static camera head gave the same poses (``benchmarks/results/auto_choice.md``)."""
+    pose, and with the camera head static the tuner's pose deviations stayed the same to every
+    digit (``benchmarks/results/auto_choice_da3_before.json`` against ``auto_choice.json``)."""
     tracking = {name for name in manifest.graphs if name != "decoder_map"}
     if static_shapes is None:
         return tracking if precision == "float32" else tracking - {"decoder_track"}

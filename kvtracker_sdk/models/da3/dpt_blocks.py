@@ -26,17 +26,19 @@ __all__ = [
 class PointwiseConv(nn.Conv2d):
     """A 1x1 ``nn.Conv2d`` (same parameters and names) that keeps a channels-last input's layout.
 
-    On a channels-last [B, C, h, w] input it is the matrix product of the [B, h, w, C] pixels with
-    the [out, C] weight, whose result is channels-last again. PyTorch's CPU convolution instead
-    sends a single-threaded 1x1 convolution to its reference kernel, which returns NCHW: the next
-    3x3 convolution (oneDNN, channels-last) would reorder it, then this one again.
+    On a channels-last [B, C, h, w] input on the CPU (eager) it is the matrix product of the
+    [B, h, w, C] pixels with the [out, C] weight, whose result is channels-last again. PyTorch's
+    CPU convolution instead sends a single-threaded 1x1 convolution to its reference kernel,
+    which returns NCHW: the next 3x3 convolution (oneDNN, channels-last) would reorder it, then
+    this one again. Elsewhere (GPU, traced or exported) it is the ordinary convolution.
     """
 
     def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__(in_channels, out_channels, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if torch.compiler.is_compiling() or not x.is_contiguous(memory_format=torch.channels_last):
+        eager_cpu = x.device.type == "cpu" and not torch.compiler.is_compiling()
+        if not eager_cpu or not x.is_contiguous(memory_format=torch.channels_last):
             return super().forward(x)
         pixels = F.linear(x.permute(0, 2, 3, 1), self.weight.flatten(1), self.bias)
         return pixels.permute(0, 3, 1, 2)
@@ -169,12 +171,14 @@ def add_uv_embedding(
 ) -> torch.Tensor:
     """``x + ratio * uv_embedding`` for a feature map [B, C, h, w] of an image (H, W).
 
-    The embedding depends only on the sizes, so eager calls reuse it: computing it costs as
+    The embedding depends only on the sizes, so eager CPU calls reuse it: computing it costs as
     much as a convolution of the head at full resolution (sines and cosines of every pixel).
-    Traced and exported calls compute it, so that the graph keeps its symbolic sizes.
+    Traced and exported calls compute it, so that the graph keeps its symbolic sizes, and so do
+    GPU calls (a tensor made while a CUDA graph captures lives in that graph's memory pool).
     """
     sizes = (*x.shape[1:], *image_size)
-    if torch.compiler.is_compiling() or not all(isinstance(n, int) for n in sizes):
+    eager_cpu = x.device.type == "cpu" and not torch.compiler.is_compiling()
+    if not eager_cpu or not all(isinstance(n, int) for n in sizes):
         return x + _scaled_uv_embedding(x, image_size, ratio)
     key = (*sizes, ratio, x.dtype, x.device)
     embedding = _UV_MEMO.get(key)
