@@ -151,18 +151,25 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
     for step in steps.values():  # first calls (static compiles) untimed
         step()
     samples: dict[str, list[float]] = {name: [] for name in steps}
+    cpu: dict[str, list[float]] = {name: [] for name in steps}
     others, loads = [], [os.getloadavg()]
     names = list(steps)
     for round_index in range(args.rounds):
         shift = round_index % len(names)
         load = OtherLoad()
         for name in names[shift:] + names[:shift]:
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             steps[name]()
             samples[name].append(time.perf_counter() - start)
+            cpu[name].append(time.process_time() - start_cpu)
         others.append(load.cores())
         loads.append(os.getloadavg())
     median = {name: statistics.median(s) for name, s in samples.items()}
+    median_cpu = {name: statistics.median(s) for name, s in cpu.items()}
+    # process CPU time: on a loaded machine the 1-thread paths' CPU time repeats within a few %
+    # while wall time swings with the other processes (2-thread paths sum both threads' time)
+    one_thread = [n for n in median_cpu if n.endswith("-t1")]
+    best_cpu = min((c.name for c in candidates if c.threads == 1), key=median_cpu.__getitem__)
     fixed = {c.name: median[c.name] for c in candidates}
     best_fixed = min(fixed, key=fixed.__getitem__)
     official = min((n for n in median if n.startswith("official-bf16")), key=median.__getitem__)
@@ -181,6 +188,9 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
                                  r.deviation, "eligible": r.eligible, "note": r.note}
                                  for r in tuned.results}},
         "median_s": median, "samples_s": samples, "others_cores": others, "load_averages": loads,
+        "median_cpu_s": median_cpu, "samples_cpu_s": cpu, "best_path_cpu_t1": best_cpu,
+        "best_path_cpu_speedup_vs_official_t1":
+            median_cpu["official-bf16-t1"] / median_cpu[best_cpu] if one_thread else None,
         "best_fixed": best_fixed, "auto_over_best_fixed": fixed[tuned.chosen.name] / fixed[best_fixed],
         "official": official, "best_path": best_path,
         "best_path_speedup_vs_official": median[official] / median[best_path],
@@ -210,16 +220,28 @@ def point_table(result: dict[str, Any]) -> str:
         f"auto = **{official / median[chosen]:.2f}×** and the fastest path "
         f"({result['best_path']}) {result['best_path_speedup_vs_official']:.2f}× the official "
         f"cached step ({result['official']})", "",
-        "| path | median step (s) | vs official bf16 | pose dev. (tuner) | |",
-        "|---|---:|---:|---:|---|",
+        "| path | median step (s) | vs official bf16 | CPU per step (s) | vs official bf16 t1 (CPU) "
+        "| pose dev. (tuner) | |",
+        "|---|---:|---:|---:|---:|---:|---|",
     ]  # fmt: skip
+    cpu = result.get("median_cpu_s")
+    if cpu:
+        lines.insert(2, f"1-thread paths by process CPU time (steady under load): the fastest "
+                        f"({result['best_path_cpu_t1']}) "
+                        f"**{result['best_path_cpu_speedup_vs_official_t1']:.2f}×** the official "
+                        f"cached step on 1 thread (official-bf16-t1)\n")  # fmt: skip
     for name in sorted(median, key=median.__getitem__):
         deviation = result["pose_deviation"].get(name)
         mark = "auto's pick" if name == chosen else ""
         mark = "excluded: " + result["tuner"]["candidates"][name]["note"] if (
             name in result["tuner"]["candidates"]
             and not result["tuner"]["candidates"][name]["eligible"]) else mark  # fmt: skip
+        cpu_cells = "— | —"
+        if cpu:
+            cpu_cells = f"{cpu[name]:.4f} | " + (
+                f"{cpu['official-bf16-t1'] / cpu[name]:.2f}×" if name.endswith("-t1") else "—")
         lines.append(f"| {name} | {median[name]:.4f} | {official / median[name]:.2f}× | "
+                     f"{cpu_cells} | "
                      f"{'—' if deviation is None else f'{deviation:.1e}'} | {mark} |")  # fmt: skip
     return "\n".join(lines)
 

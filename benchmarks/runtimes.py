@@ -60,12 +60,14 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 from torch.utils.flop_counter import FlopCounterMode, register_flop_formula
 
 from benchmarks.model_families import MODELS, build_model, random_cache
 from benchmarks.shared_cpu_timing import OtherLoad
 from kvtracker_sdk.backends.torch_compile import CompiledTracking, CompileOptions
 from kvtracker_sdk.cache import KVCache
+from kvtracker_sdk.models.da3 import dpt_blocks, dualdpt
 from kvtracker_sdk.models.layers.attention import Attention
 from kvtracker_sdk.models.layers.cached_attention import use_cached_kernel
 from kvtracker_sdk.models.registry import family_of
@@ -116,16 +118,30 @@ def _official_forward_track(
     return self._merge(F.scaled_dot_product_attention(q, keys, values, attn_mask=attn_mask))
 
 
+def _official_add_uv_embedding(
+    x: torch.Tensor, image_size: tuple[int, int], ratio: float = 0.1
+) -> torch.Tensor:
+    """The official DPT head's ``_add_pos_embed``: the UV embedding computed on every call."""
+    return x + dpt_blocks._scaled_uv_embedding(x, image_size, ratio)
+
+
 @contextlib.contextmanager
 def official_code(dtype: torch.dtype) -> Iterator[None]:
-    """The official step's attention, and autocast to ``dtype`` over fp32 weights (bf16)."""
-    sdk = Attention.forward_track
+    """The official step's attention, and autocast to ``dtype`` over fp32 weights (bf16); DA3's
+    DPT head as the official code runs it (NCHW convolutions, the UV embedding computed per
+    call) instead of the SDK's (channels-last, the embedding reused)."""
+    saved = (Attention.forward_track, dpt_blocks.PointwiseConv.forward,
+             dualdpt._channels_last, dualdpt.add_uv_embedding)  # fmt: skip
     Attention.forward_track = _official_forward_track  # type: ignore[method-assign]
+    dpt_blocks.PointwiseConv.forward = nn.Conv2d.forward  # type: ignore[method-assign]
+    dualdpt._channels_last = lambda x: x
+    dualdpt.add_uv_embedding = _official_add_uv_embedding
     try:
         with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
             yield
     finally:
-        Attention.forward_track = sdk  # type: ignore[method-assign]
+        (Attention.forward_track, dpt_blocks.PointwiseConv.forward,  # type: ignore[method-assign]
+         dualdpt._channels_last, dualdpt.add_uv_embedding) = saved  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- variants

@@ -67,9 +67,9 @@ class OpenVinoBackend(ExportBackend):
     (None: one per physical core). ``static_shapes``: track on graphs compiled for the
     current map's exact shapes (``openvino_static``; one compile, on the first frame after the
     map's keyframe count or resolution changes): None (default) = every tracking graph in
-    float32, the encoder only with a bf16/f16 hint (the static decoder's bf16 poses deviate more;
-    ``openvino_runtime.static_graphs``); True = every tracking graph (the fastest); False = none;
-    or graph names. Measured speeds and compile times:
+    float32, all but the tracking decoder with a bf16/f16 hint (the static decoder's bf16 poses
+    deviate more; ``openvino_runtime.static_graphs``); True = every tracking graph (the fastest);
+    False = none; or graph names. Measured speeds and compile times:
     ``benchmarks/README.md#figures-behind-the-code``.
     """
 

@@ -22,8 +22,8 @@ Choices, and why:
 - ``static_shapes``: tracking passes run on graphs compiled for their exact input shapes,
   ``past_length`` folded in (``openvino_static``: faster, at one compile per new map shape,
   logged; figures: ``benchmarks/README.md#figures-behind-the-code``);
-  by default every tracking graph in float32 and the encoder only with a bf16/f16 hint
-  (``static_graphs``). Mapping passes, whose keyframe count changes every rebuild, run on the
+  by default every tracking graph in float32 and all but the tracking decoder with a bf16/f16
+  hint (``static_graphs``). Mapping passes, whose keyframe count changes every rebuild, run on the
   dynamic graphs.
 - One inference request per graph per thread: a tracker maps (rebuilds) on a worker thread while
   it tracks on another, and both passes run the encoder and the heads; an OpenVINO request must
@@ -104,12 +104,15 @@ def static_graphs(
 ) -> set[str]:
     """The graphs tracking runs static-shaped: True = every graph but ``decoder_map`` (mapping
     stays dynamic), False = none, the names given (``ConfigError`` for another name), or None
-    (default) = every one in float32, the encoder only with a bf16/f16 hint: the static decoder
-    computes bf16 differently (more of it fused in bf16), and its poses deviated more from fp32
-    than the dynamic decoder's (figures: ``benchmarks/README.md#figures-behind-the-code``)."""
+    (default) = every one in float32; with a bf16/f16 hint every one but the tracking decoder:
+    the static decoder computes bf16 differently (more of it fused in bf16), and its poses
+    deviated more from fp32 than the dynamic decoder's (figures:
+    ``benchmarks/README.md#figures-behind-the-code``). The heads are static in bf16 as the
+    encoder is: the depth head has no part in the pose, and with the camera head static the
+    tuner's pose deviations stayed the same (``benchmarks/results/auto_choice.md``)."""
     tracking = {name for name in manifest.graphs if name != "decoder_map"}
     if static_shapes is None:
-        return tracking if precision == "float32" else {"encoder"}
+        return tracking if precision == "float32" else tracking - {"decoder_track"}
     if isinstance(static_shapes, bool):
         return tracking if static_shapes else set()
     unknown = sorted(set(static_shapes) - tracking)

@@ -13,7 +13,35 @@ from torch import nn
 
 from kvtracker_sdk.models.layers.symbolic_sizes import size_tensor
 
-__all__ = ["ChannelsLast", "FusionBlock", "ResidualConvUnit", "add_uv_embedding", "uv_embedding"]
+__all__ = [
+    "ChannelsLast",
+    "FusionBlock",
+    "PointwiseConv",
+    "ResidualConvUnit",
+    "add_uv_embedding",
+    "uv_embedding",
+]
+
+
+class PointwiseConv(nn.Conv2d):
+    """A 1x1 ``nn.Conv2d`` (same parameters and names) that keeps a channels-last input's layout.
+
+    On a channels-last [B, C, h, w] input on the CPU (eager) it is the matrix product of the
+    [B, h, w, C] pixels with the [out, C] weight, whose result is channels-last again. PyTorch's
+    CPU convolution instead sends a single-threaded 1x1 convolution to its reference kernel,
+    which returns NCHW: the next 3x3 convolution (oneDNN, channels-last) would reorder it, then
+    this one again. Elsewhere (GPU, traced or exported) it is the ordinary convolution.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__(in_channels, out_channels, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        eager_cpu = x.device.type == "cpu" and not torch.compiler.is_compiling()
+        if not eager_cpu or not x.is_contiguous(memory_format=torch.channels_last):
+            return super().forward(x)
+        pixels = F.linear(x.permute(0, 2, 3, 1), self.weight.flatten(1), self.bias)
+        return pixels.permute(0, 3, 1, 2)
 
 
 class ResidualConvUnit(nn.Module):
@@ -39,7 +67,7 @@ class FusionBlock(nn.Module):
         super().__init__()
         self.resConfUnit1 = ResidualConvUnit(features) if has_residual else None
         self.resConfUnit2 = ResidualConvUnit(features)
-        self.out_conv = nn.Conv2d(features, features, 1)
+        self.out_conv = PointwiseConv(features, features)
 
     def forward(
         self,
@@ -118,10 +146,10 @@ def uv_embedding(
     return embedding.reshape(height, width, channels).permute(2, 0, 1)
 
 
-def add_uv_embedding(
-    x: torch.Tensor, image_size: tuple[int, int], ratio: float = 0.1
+def _scaled_uv_embedding(
+    x: torch.Tensor, image_size: tuple[int, int], ratio: float
 ) -> torch.Tensor:
-    """``x + ratio * uv_embedding`` for a feature map [B, C, h, w] of an image (H, W)."""
+    """``ratio * uv_embedding`` [C, h, w] for ``x`` [B, C, h, w]: computed, not remembered."""
     embedding = uv_embedding(
         x.shape[-2],
         x.shape[-1],
@@ -130,4 +158,32 @@ def add_uv_embedding(
         dtype=x.dtype,
         device=x.device,
     )
-    return x + embedding * ratio
+    return embedding * ratio
+
+
+# (h, w, C, image size, ratio, dtype, device) -> ratio * uv_embedding; a tracker sees a handful
+_UV_MEMO: dict[tuple[object, ...], torch.Tensor] = {}
+_UV_MEMO_SIZE = 32
+
+
+def add_uv_embedding(
+    x: torch.Tensor, image_size: tuple[int, int], ratio: float = 0.1
+) -> torch.Tensor:
+    """``x + ratio * uv_embedding`` for a feature map [B, C, h, w] of an image (H, W).
+
+    The embedding depends only on the sizes, so eager CPU calls reuse it: computing it costs as
+    much as a convolution of the head at full resolution (sines and cosines of every pixel).
+    Traced and exported calls compute it, so that the graph keeps its symbolic sizes, and so do
+    GPU calls (a tensor made while a CUDA graph captures lives in that graph's memory pool).
+    """
+    sizes = (*x.shape[1:], *image_size)
+    eager_cpu = x.device.type == "cpu" and not torch.compiler.is_compiling()
+    if not eager_cpu or not all(isinstance(n, int) for n in sizes):
+        return x + _scaled_uv_embedding(x, image_size, ratio)
+    key = (*sizes, ratio, x.dtype, x.device)
+    embedding = _UV_MEMO.get(key)
+    if embedding is None:
+        if len(_UV_MEMO) >= _UV_MEMO_SIZE:
+            _UV_MEMO.clear()
+        embedding = _UV_MEMO[key] = _scaled_uv_embedding(x, image_size, ratio)
+    return x + embedding

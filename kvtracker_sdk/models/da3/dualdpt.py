@@ -31,7 +31,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from kvtracker_sdk.models.da3.config import DA3HeadConfig
-from kvtracker_sdk.models.da3.dpt_blocks import ChannelsLast, FusionBlock, add_uv_embedding
+from kvtracker_sdk.models.da3.dpt_blocks import (
+    ChannelsLast,
+    FusionBlock,
+    PointwiseConv,
+    add_uv_embedding,
+)
 
 __all__ = ["DualDPT", "DualDPTOutput"]
 
@@ -63,7 +68,7 @@ class _Scratch(nn.Module):
         self.refinenet4 = FusionBlock(features, has_residual=False)
         self.output_conv1 = nn.Conv2d(features, features // 2, 3, padding=1)
         self.output_conv2 = nn.Sequential(
-            nn.Conv2d(features // 2, _HIDDEN, 3, padding=1), nn.ReLU(), nn.Conv2d(_HIDDEN, 2, 1)
+            nn.Conv2d(features // 2, _HIDDEN, 3, padding=1), nn.ReLU(), PointwiseConv(_HIDDEN, 2)
         )
         self.refinenet1_aux, self.refinenet2_aux, self.refinenet3_aux = (
             FusionBlock(features) for _ in range(3)
@@ -108,6 +113,15 @@ def _aux_neck(features: int) -> nn.Sequential:
     return nn.Sequential(*(nn.Conv2d(a, b, 3, padding=1) for a, b in pairwise(widths)))
 
 
+def _channels_last(x: torch.Tensor) -> torch.Tensor:
+    """``x`` [B, C, h, w] stored channels-last, the layout oneDNN's CPU convolutions compute in:
+    every convolution, addition and resize after it then keeps that layout, instead of reordering
+    its input and output on each call (the values are the same to float rounding)."""
+    if x.device.type != "cpu" or torch.compiler.is_compiling():  # exports keep their graph
+        return x
+    return x.contiguous(memory_format=torch.channels_last)
+
+
 class DualDPT(nn.Module):
     """``head``: features 4 x [V, h*w, dim_in] -> ``DualDPTOutput`` (V views, any batching)."""
 
@@ -116,7 +130,7 @@ class DualDPT(nn.Module):
         self.patch_size = patch_size
         features, channels = config.features, config.out_channels
         self.norm = nn.LayerNorm(dim_in)
-        self.projects = nn.ModuleList(nn.Conv2d(dim_in, width, 1) for width in channels)
+        self.projects = nn.ModuleList(PointwiseConv(dim_in, width) for width in channels)
         self.resize_layers = nn.ModuleList(
             [
                 nn.ConvTranspose2d(channels[0], channels[0], kernel_size=4, stride=4),
@@ -170,7 +184,7 @@ class DualDPT(nn.Module):
         for level, tokens in enumerate(features):
             # [V, h*w, dim_in] -> [V, dim_in, h, w]
             x = self.norm(tokens).transpose(1, 2).reshape(tokens.shape[0], -1, grid_h, grid_w)
-            x = add_uv_embedding(self.projects[level](x), image_size)
+            x = add_uv_embedding(self.projects[level](_channels_last(x)), image_size)
             pyramid.append(self.resize_layers[level](x))
         s = self.scratch
         lateral = s.lateral(pyramid)
