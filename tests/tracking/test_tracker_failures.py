@@ -236,9 +236,14 @@ def test_snapshots_read_from_another_thread_are_always_legal_pairs() -> None:
     with make_tracker(backend, relocalization={"lost_after": 2}) as tracker:
 
         def read() -> None:
-            while not stop.is_set():
+            # The short wait yields the GIL between reads (as in test_tracker_threads.py): a
+            # spinning reader burns a core for the whole walk and sees no other interleavings,
+            # since the tracker only changes its snapshot while it holds the GIL.
+            while True:  # reads first: the tracker's state before the first frame counts too
                 snap = tracker.snapshot()
                 seen.add((snap.state, snap.reason))
+                if stop.wait(0.0002):
+                    return
 
         reader = threading.Thread(target=read)
         reader.start()
