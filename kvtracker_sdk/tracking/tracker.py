@@ -1,8 +1,9 @@
 """``Tracker``: the SDK's facade — frames in, poses out.
 
-``push_frame`` validates and resizes a frame (``frame_input``) and hands it to the ``FrameLoop``
-(``frame_loop``: track, judge confidence, move through the state table, propose keyframes, install
-rebuilds). Events are queued while the tracker's lock is held and delivered after it is released,
+``push_frame`` checks what it was given once, on entry (``frame_input``), then runs the checked
+frame straight through: its mode's region (``frame_mode``; object mode only), its preparation for
+the model (``model_input``), the ``FrameLoop``'s step (``frame_loop``: track, judge confidence,
+move through the state table, propose keyframes, install rebuilds) and its mode's observation. Events are queued while the tracker's lock is held and delivered after it is released,
 on the calling thread (``events``). Maps are saved, loaded and exported through ``persistence``.
 
 The members an app needs less often are grouped in thin views over the tracker, each in its own
