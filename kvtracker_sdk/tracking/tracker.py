@@ -482,7 +482,8 @@ class Tracker:
         timings = {"preprocess": _ms(start) - regions_in.prompt_ms}
         if regions_in.segmented is not None:
             timings["segment"] = regions_in.prompt_ms
-        self._loop.predicted_K, world_changes = None, self._loop.world_changes
+        self._loop.predicted_K = None  # set by this step if the network predicts intrinsics
+        world_changes = self._loop.world_changes
         step = self._loop.step(prepared, index, timings, frame.gravity,
                                keyframe_allowed=not regions_in.searching)
         if self._loop.world_changes != world_changes:

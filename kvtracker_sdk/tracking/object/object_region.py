@@ -149,8 +149,8 @@ def region_of_mask(
     source: RegionSource,
 ) -> ObjectRegion:
     """The region over bool [H, W] ``mask``, which must select a pixel. ``box``: the app's box,
-    or the projected points' (``projected_mask``); None: the mask's tight box. Its context box
-    is ``box`` dilated by ``margin`` pixels."""
+    or the projected points' (``projected_mask``); None: the mask's tight box. The region's
+    context box is that box dilated by ``margin`` pixels, clipped to the image."""
     size = (int(mask.shape[0]), int(mask.shape[1]))
     tight = box if box is not None else mask_box(mask)
     assert tight is not None  # validated masks select a pixel
