@@ -1,8 +1,9 @@
 """``Tracker``: the SDK's facade — frames in, poses out.
 
-``push_frame`` validates and resizes a frame (``frame_input``) and hands it to the ``FrameLoop``
-(``frame_loop``: track, judge confidence, move through the state table, propose keyframes, install
-rebuilds). Events are queued while the tracker's lock is held and delivered after it is released,
+``push_frame`` checks what it was given once, on entry (``frame_input``), then runs the checked
+frame straight through: its mode's region (``frame_mode``; object mode only), its preparation for
+the model (``model_input``), the ``FrameLoop``'s step (``frame_loop``: track, judge confidence,
+move through the state table, propose keyframes, install rebuilds) and its mode's observation. Events are queued while the tracker's lock is held and delivered after it is released,
 on the calling thread (``events``). Maps are saved, loaded and exported through ``persistence``.
 
 The members an app needs less often are grouped in thin views over the tracker, each in its own
@@ -42,7 +43,6 @@ from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMod
 from kvtracker_sdk.errors import (
     BackendMismatchError,
     ConfigError,
-    InputError,
     MissingDependencyError,
     StateError,
 )
@@ -51,21 +51,15 @@ from kvtracker_sdk.io.map_file.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking.core.events import EventBus
-from kvtracker_sdk.tracking.core.frame_input import (
-    FramePreparer,
-    PreparedFrame,
-    check_time_order,
-    family_preprocessing,
-    to_rgb,
-)
+from kvtracker_sdk.tracking.core.frame_input import FrameInput, check_camera, check_frame
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
+from kvtracker_sdk.tracking.core.model_input import FramePreparer, family_preprocessing
 from kvtracker_sdk.tracking.live.live_intake import LiveIntake
-from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop, Step
+from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.loop.states import TrackingEvent
 from kvtracker_sdk.tracking.object.frame_mode import (
     FrameMode,
     ObjectFrames,
-    ObjectObservation,
     SceneFrames,
 )
 from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, RegionPropagator
@@ -78,8 +72,6 @@ from kvtracker_sdk.tracking.tracker_live import TrackerLive
 from kvtracker_sdk.tracking.tracker_object import TrackerObject, checked_segmenter
 from kvtracker_sdk.tracking.tracker_renames import renamed_member
 from kvtracker_sdk.tracking.tracker_world import TrackerWorld
-from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
-from kvtracker_sdk.tracking.world.world_alignment import check_gravity
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,
@@ -142,7 +134,7 @@ class Tracker:
         self._frames = 0  # frame indices are never reused by one tracker
         self._last_timestamp: float | None = None  # of the session's last frame: time order
         self._closed = False
-        self._camera = _checked_camera(camera)
+        self._camera = check_camera(camera)
         crops = cfg.mode is TrackingMode.OBJECT and (
             cfg.object.preprocessing is ObjectPreprocessing.CROP
         )
@@ -251,7 +243,7 @@ class Tracker:
 
     @camera.setter
     def camera(self, camera: Camera | None) -> None:
-        checked = _checked_camera(camera)
+        checked = check_camera(camera)
         with self._call():
             self._camera = checked
 
@@ -467,100 +459,62 @@ class Tracker:
         """
         start = time.perf_counter()
         with self._call():
-            index, kf_map = self._frames, self._keeper.map
-            image = to_rgb(image, color)  # before the segmenter sees it
-            regions_in = self._mode.before_step(image, index, kf_map, mask, bbox,
-                                                min_side=self._preparer.patch_size, start=start)
-            frame_camera = _checked_camera(camera) if camera is not None else self._camera
-            frame = self._prepared(image, timestamp, regions_in.mask, bbox, kf_map, frame_camera,
-                                   depth, depth_scale)
-            down = check_gravity(gravity)
-            timings = {"preprocess": _ms(start) - regions_in.prompt_ms}
-            if regions_in.segmented is not None:
-                timings["segment"] = regions_in.prompt_ms
-            step, intrinsics, source = self._step(frame, index, timings, down,
-                                                  keyframe_allowed=not regions_in.searching)
-            pose = step.pose.T_world_cam if step.valid and step.pose is not None else None
-            seen = self._mode.after_step(regions_in, bbox, frame.input_size, index,
-                                         self._keeper.map, pose, intrinsics, timings)
-            self._object_search(seen, index)
-            self._advance(index, frame)
-            timings["total"] = _ms(start)
-            result = self._result(index, frame, step, (intrinsics, source), seen, timings)
-        _log.debug("frame", frame_index=index, state=result.state.value, pose_valid=step.valid,
-                   confidence=step.confidence,
-                   **{f"{k}_ms": round(v, 3) for k, v in timings.items()})
+            frame = check_frame(
+                image, min_side=self._preparer.patch_size, color=color, timestamp=timestamp,
+                mask=mask, bbox=bbox, camera=self._camera if camera is None else camera,
+                depth=depth, depth_scale=depth_scale, gravity=gravity,
+                session_size=self._input_size, previous_timestamp=self._last_timestamp)
+            result = self._track(frame, start)
+        _log.debug("frame", frame_index=result.frame_index, state=result.state.value,
+                   pose_valid=result.pose_valid, confidence=result.confidence,
+                   **{f"{k}_ms": round(v, 3) for k, v in result.timings_ms.items()})
         return result
 
-    def _result(
-        self, index: int, frame: PreparedFrame, step: Step,
-        camera: tuple[Camera | None, IntrinsicsSource | None], seen: ObjectObservation,
-        timings: dict[str, float],
-    ) -> FrameResult:
-        """Under the lock: the frame's result."""
+    def _track(self, frame: FrameInput, start: float) -> FrameResult:
+        """Under the lock: a checked frame through its mode's region (before the step), the
+        model's input, the frame loop's step and the mode's observation (after it), to its result.
+        ``start``: when ``push_frame`` was called."""
+        index, kf_map = self._frames, self._keeper.map
+        regions_in = self._mode.before_step(frame, index, kf_map, start=time.perf_counter())
+        prepared = self._preparer.to_model(
+            frame, regions_in.mask, map_resolution=None if kf_map is None else kf_map.resolution,
+            map_preprocessing=None if kf_map is None else kf_map.preprocessing)
+        timings = {"preprocess": _ms(start) - regions_in.prompt_ms}
+        if regions_in.segmented is not None:
+            timings["segment"] = regions_in.prompt_ms
+        self._loop.predicted_K = None  # set by this step if the network predicts intrinsics
+        world_changes = self._loop.world_changes
+        step = self._loop.step(prepared, index, timings, frame.gravity,
+                               keyframe_allowed=not regions_in.searching)
+        if self._loop.world_changes != world_changes:
+            self._mode.forget_poses()  # extrapolating across worlds would mix them
+        intrinsics, source = self._intrinsics.resolve(prepared, self._loop.predicted_K,
+                                                      self._keeper.map)
+        if intrinsics is not None and source is not None:
+            self._last_intrinsics = (intrinsics, source)
+        pose = step.pose.T_world_cam if step.valid and step.pose is not None else None
+        seen = self._mode.after_step(regions_in, frame, index, self._keeper.map, pose,
+                                     intrinsics, timings)
+        if seen.search_exhausted and self.state is _S.RELOCALIZING:  # the app must point at it
+            self._loop.fire(TrackingEvent.OBJECT_NOT_FOUND, index)
+            _log.warning("the loaded map's object was not found in the whole frame",
+                         frames=self._config.object.search_frames, hint=OBJECT_NOT_FOUND_HINT)
+        # counted once it went through: an unexpected error leaves the session as it was
+        self._frames, self._input_size = index + 1, frame.size
+        if frame.timestamp is not None:
+            self._last_timestamp = frame.timestamp
+        timings["total"] = _ms(start)
         return FrameResult(
             frame_index=index, timestamp=frame.timestamp, state=self.state,
             reason=self.reason, pose=step.pose, pose_valid=step.valid,
             confidence=step.confidence, keyframe_id=step.keyframe_id,
             map_generation=self._loop.snapshot.map_generation, timings_ms=timings,
             extras={"rebuilding": self._keeper.rebuilding}, error=step.error,
-            intrinsics=camera[0], intrinsics_source=camera[1], region=seen.region,
+            intrinsics=intrinsics, intrinsics_source=source, region=seen.region,
             T_cam_object=seen.T_cam_object, object_frame=seen.object_frame,
         )
 
-    def _prepared(
-        self, image: np.ndarray, timestamp: float | None, mask: Any, bbox: Any,
-        kf_map: KeyframeMap | None, camera: Camera | None, depth: np.ndarray | None,
-        depth_scale: float | None,
-    ) -> PreparedFrame:
-        """Under the lock: the frame validated and prepared for the model, with its depth (in
-        the model image's pixels) if given; InputError before anything changes."""
-        frame = self._preparer.prepare(
-            image, timestamp=timestamp, mask=mask, bbox=bbox,
-            session_input_size=self._input_size,
-            map_resolution=None if kf_map is None else kf_map.resolution,
-            map_preprocessing=None if kf_map is None else kf_map.preprocessing,
-            camera=camera,
-        )
-        check_time_order(frame.timestamp, self._last_timestamp)
-        if depth is None:
-            return frame
-        metres = check_depth(depth, depth_scale, frame.input_size)
-        if camera is not None:  # registered to the colour frame: undistorted alike
-            metres = self._depth_undistort(metres, camera, nearest=True)
-        return replace(frame, depth=depth_to_model(metres, frame.transform, frame.image.shape[:2]))
-
-    def _step(
-        self, frame: PreparedFrame, index: int, timings: dict[str, float],
-        gravity: np.ndarray | None, *, keyframe_allowed: bool,
-    ) -> tuple[Step, Camera | None, IntrinsicsSource | None]:
-        """Under the lock: the frame loop's step, and the input image's intrinsics after it."""
-        self._loop.predicted_K = None
-        world_changes = self._loop.world_changes
-        step = self._loop.step(frame, index, timings, gravity, keyframe_allowed=keyframe_allowed)
-        if self._loop.world_changes != world_changes:
-            self._mode.forget_poses()  # extrapolating across worlds would mix them
-        intrinsics, source = self._intrinsics.resolve(frame, self._loop.predicted_K,
-                                                      self._keeper.map)
-        if intrinsics is not None and source is not None:
-            self._last_intrinsics = (intrinsics, source)
-        return step, intrinsics, source
-
     # ------------------------------------------------------------------ plumbing
-    def _advance(self, index: int, frame: PreparedFrame) -> None:
-        """Count the frame once it went through: an unexpected error leaves both as they were."""
-        self._frames, self._input_size = index + 1, frame.input_size
-        if frame.timestamp is not None:
-            self._last_timestamp = frame.timestamp
-
-    def _object_search(self, seen: ObjectObservation, index: int) -> None:
-        """Object mode: ``object.search_frames`` frames in a row searched in vain for a loaded
-        map's object: the reason OBJECT_NOT_FOUND (the app must point at it)."""
-        if seen.search_exhausted and self.state is _S.RELOCALIZING:
-            self._loop.fire(TrackingEvent.OBJECT_NOT_FOUND, index)
-            _log.warning("the loaded map's object was not found in the whole frame",
-                         frames=self._config.object.search_frames, hint=OBJECT_NOT_FOUND_HINT)
-
     def _map_camera(self) -> tuple[Camera, IntrinsicsSource] | None:
         """What a saved map records as its camera: the session's given one, else the last
         frame's reported intrinsics."""
@@ -612,9 +566,3 @@ def _check_cache_dtype(config: TrackerConfig, backend: BackendInfo) -> None:
             f"cache_dtype {config.cache_dtype!r} needs the PyTorch backend; the {backend.backend} "
             f"backend reads dense caches only (cache_dtype 'backend')"
         )
-
-
-def _checked_camera(camera: Any) -> Camera | None:
-    if camera is not None and not isinstance(camera, Camera):
-        raise InputError(f"camera must be a kvtracker_sdk.Camera or None, got {camera!r}")
-    return camera

@@ -12,7 +12,7 @@ from kvtracker_sdk.errors import DepthError, SourceError
 from kvtracker_sdk.io.sources.depth_frames import TUM_DEPTH_SCALE, DepthFolder
 from kvtracker_sdk.io.sources.sources import TumSource
 from kvtracker_sdk.runs.frames import FrameSelection, read_frames
-from kvtracker_sdk.tracking.world.depth_input import check_depth
+from kvtracker_sdk.tracking.core.frame_input import check_depth
 
 
 def _tum_sequence(folder: Path) -> None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.config import TrackerConfig
-from kvtracker_sdk.tracking.core.frame_input import FramePreparer
+from kvtracker_sdk.tracking.core.model_input import FramePreparer
 
 
 def _preparer(family: str = "pi3") -> FramePreparer:

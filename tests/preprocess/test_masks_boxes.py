@@ -8,7 +8,7 @@ import pytest
 
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.preprocess import for_family
-from kvtracker_sdk.tracking.core.frame_input import FramePreparer
+from kvtracker_sdk.tracking.core.model_input import FramePreparer
 
 H, W = 480, 640
 

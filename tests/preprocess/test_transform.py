@@ -9,7 +9,7 @@ import pytest
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.preprocess import for_family
 from kvtracker_sdk.preprocess.resampling import resample
-from kvtracker_sdk.tracking.core.frame_input import FramePreparer
+from kvtracker_sdk.tracking.core.model_input import FramePreparer
 
 K = np.array([[525.0, 0.0, 319.5], [0.0, 525.0, 239.5], [0.0, 0.0, 1.0]])
 

@@ -18,7 +18,7 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
 )
 from kvtracker_sdk.preprocess import fit_box
-from kvtracker_sdk.tracking.core.frame_input import FramePreparer, resolve_resolution
+from kvtracker_sdk.tracking.core.model_input import FramePreparer, resolve_resolution
 
 H, W = 240, 320  # 4:3 input -> 196 x 252 at d = 224 (Pi3, as KV-Tracker)
 MODEL = (196, 252)

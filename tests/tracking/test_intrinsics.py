@@ -11,8 +11,8 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
-from kvtracker_sdk.tracking.core.frame_input import FramePreparer
 from kvtracker_sdk.tracking.core.intrinsics import fit_intrinsics
+from kvtracker_sdk.tracking.core.model_input import FramePreparer
 from kvtracker_sdk.tracking.tracker import Tracker
 from tests.helpers import shared_path
 

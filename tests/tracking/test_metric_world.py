@@ -28,7 +28,8 @@ from kvtracker_sdk.geometry.pixel_transform import PixelTransform
 from kvtracker_sdk.io.exports.ros_frames import DEFAULT_T_BASE_OPTICAL, map_from_world
 from kvtracker_sdk.io.map_file.map_file import read_map_info
 from kvtracker_sdk.io.map_file.map_format import metadata_digest
-from kvtracker_sdk.tracking.world.depth_input import check_depth, depth_to_model
+from kvtracker_sdk.tracking.core.frame_input import check_depth
+from kvtracker_sdk.tracking.core.model_input import depth_to_model
 from kvtracker_sdk.tracking.world.metric_scale import fit_depth_scale
 from kvtracker_sdk.tracking.world.world_alignment import level_rotation
 from kvtracker_sdk.world import MapWorld, ScaleSource, WorldAlignment

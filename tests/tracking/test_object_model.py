@@ -16,7 +16,7 @@ from kvtracker_sdk.geometry.boxes import box_iou, mask_box
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.preprocess import box_mask
 from kvtracker_sdk.tracking.object.object_model import foreground_points, voxel_subsample
-from kvtracker_sdk.tracking.object.object_region import grown_mask, project_region, region_of_input
+from kvtracker_sdk.tracking.object.object_region import grown_mask, project_region, region_of_mask
 from kvtracker_sdk.types import RegionSource
 
 SIZE = (120, 160)
@@ -73,7 +73,7 @@ def test_region_masks_round_trip_and_grow_within_the_context_box() -> None:
     mask = np.zeros(SIZE, dtype=bool)
     mask[40:60, 50:90] = True
     mask[50, 60] = False
-    region = region_of_input(mask, None, margin=5, frame_index=0, source=RegionSource.GIVEN)
+    region = region_of_mask(mask, None, margin=5, frame_index=0, source=RegionSource.GIVEN)
     assert region.box == mask_box(mask) and np.array_equal(region.mask, mask)
     assert region.mask_bits.nbytes <= 20 * 40 // 8 + 1  # the packed crop, not the image
     grown = grown_mask(region)

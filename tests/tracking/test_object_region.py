@@ -16,7 +16,7 @@ import pytest
 
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.cli.demo_trajectory import handheld_orbit
-from kvtracker_sdk.errors import MaskError
+from kvtracker_sdk.errors import InputError, MaskError
 from kvtracker_sdk.geometry.boxes import box_iou
 from kvtracker_sdk.types import FrameResult, ObjectFrame, ObjectRegion, RegionSource
 from tests.tracking.sim_session import SIZE, Session, make_tracker
@@ -164,6 +164,22 @@ def test_a_segmenter_answers_the_predicted_prompt(backend: SimulatedBackend) -> 
         assert box_iou(prompt.box, truth) >= IOU
         assert prompt.context_box[0] <= max(0.0, prompt.box[0] - 50 + 1e-9)
     assert all(r.pose_valid for r in results)
+
+
+def test_a_frame_refused_on_entry_never_reaches_the_segmenter(backend: SimulatedBackend) -> None:
+    """Everything pushed with a frame is checked before anyone is asked about it: a frame refused
+    for its timestamp was never shown to the app's segmenter; pushed in order, it is."""
+    segmenter = TrueMaskSegmenter(backend)
+    first, second = backend.frames(SIZE, textured=False, stop=2)
+    with make_tracker(backend, mode="object") as tracker:
+        tracker.object.set_segmenter(segmenter)
+        tracker.push_frame(first.image, timestamp=1.0,
+                           bbox=backend.scene.object_box(first.T_world_cam, SIZE))
+        with pytest.raises(InputError, match="earlier than the previous"):
+            tracker.push_frame(second.image, timestamp=0.5)
+        assert segmenter.prompts == []
+        result = tracker.push_frame(second.image, timestamp=1.5)
+    assert len(segmenter.prompts) == 1 and result.region.source is RegionSource.SEGMENTED
 
 
 def test_the_first_object_frame_needs_a_mask_or_a_box(backend: SimulatedBackend) -> None:

@@ -13,7 +13,7 @@ from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import MapPreprocessingError
 from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info
 from kvtracker_sdk.preprocess import LEGACY_AREA_FLOOR
-from kvtracker_sdk.tracking.core import frame_input
+from kvtracker_sdk.tracking.core import model_input
 from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper
 from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
@@ -41,7 +41,7 @@ def old_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("legacy") / "old.kvmap"
     backend = _backend()
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(frame_input, "for_family", lambda family: LEGACY_AREA_FLOOR)
+        patch.setattr(model_input, "for_family", lambda family: LEGACY_AREA_FLOOR)
         with make_tracker(backend, **INTERVAL) as tracker:
             _push(tracker, backend, 0, 21)
             tracker.save_map(path)

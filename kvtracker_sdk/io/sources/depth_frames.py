@@ -9,7 +9,7 @@
   colour frames by position.
 
 Files are read unchanged (16-bit stays 16-bit; invalid = 0); the tracker converts them to metres
-with the depth scale (``tracking/world/depth_input.py``).
+with the depth scale (``tracking/core/frame_input.py``).
 """
 
 from __future__ import annotations

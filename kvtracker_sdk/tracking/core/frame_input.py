@@ -1,30 +1,30 @@
-"""Validation and preprocessing of the frames, masks and boxes a user pushes.
+"""What an app pushes with a frame, checked: the single entry of a frame into the tracker.
 
-Everything here is checked before the tracker changes anything, so a bad frame raises a typed
+``check_frame`` checks everything ``push_frame`` (or ``submit``) was given, before the tracker
+changes anything or asks anyone (the object region, the app's segmenter, the network) about the
+frame, and hands on the checked values as one ``FrameInput``: a bad frame raises a typed
 :class:`~kvtracker_sdk.errors.InputError` and leaves the tracker, its map and its cache untouched.
+Turning the checked frame into the model's input is ``model_input``'s.
 
 Accepted input (design doc, "Per-frame result"):
 
-* ``image``: numpy [H, W, 3] RGB, uint8 or a float dtype with values in [0, 1]; H, W >= the
-  model's patch size; the same H, W for the whole session.
+* ``image``: numpy [H, W, 3], uint8 or a float dtype with values in [0, 1]; H, W >= the
+  model's patch size; the same H, W for the whole session. RGB, or BGR with ``color="bgr"``.
+* ``timestamp``: seconds on any clock, finite, never earlier than the session's previous frame's.
 * ``mask``: numpy [H, W] (or [H, W, 1]) bool or integer (non-zero = object), selecting at least
-  one pixel, also after resizing to the model resolution.
+  one pixel (``model_input`` checks it still does at model resolution).
 * ``bbox``: (x0, y0, x1, y1) in pixels of the image, x0 < x1, y0 < y1, inside [0, W] x [0, H].
-  In object mode the ``Tracker`` passes the region it predicted (``object_region``) for a frame
-  pushed without either, so only a frame with no region known yet lacks one (``MaskError``).
   Alone it acts as a rectangular mask; with a mask, the mask selects the object and the box only
-  sets the crop region.
-
-* ``camera``: the input image's intrinsics (``Camera`` of size W x H), optional. With OpenCV
-  distortion the frame is undistorted first (same size and K), and the prepared frame's camera is
-  the undistorted one.
-
-Output: a uint8 image at model resolution, prepared by the model family's preprocessing
-(``kvtracker_sdk.preprocess``: Pi3 as KV-Tracker, DA3 as its own input processor), or by the
-loaded map's when it was made by another one; in object mode either the background blacked out
-(``ObjectPreprocessing.MASK``) or a crop around the object dilated by ``crop_margin_px`` pixels of
-the pushed frame and grown to the model's aspect ratio (``CROP``). The prepared frame carries the
-exact pixel transform from the pushed frame to it.
+  sets the crop region. In object mode a frame pushed without either takes the region the
+  tracker predicts (``tracking/object``).
+* ``camera``: the input image's intrinsics (``Camera`` of size W x H), optional.
+* ``depth``: an RGB-D sensor's depth image registered to ``image`` (same H, W: pixel (u, v) of
+  both sees the same ray), either float (metres; ``depth_scale`` omitted, or a factor to metres)
+  or integer raw units with ``depth_scale`` = metres per unit (RealSense 0.001, TUM's 16-bit PNGs
+  1/5000, Kinect for Azure 0.001). Invalid pixels are 0 (NaN and inf are taken as invalid too:
+  several SDKs mark holes so); a negative depth is a ``DepthError``: it is a wrong sign or a wrong
+  dtype, not a hole.
+* ``gravity``: gravity's direction in the frame's camera (3 numbers, pointing down, any length).
 """
 
 from __future__ import annotations
@@ -35,10 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMode
 from kvtracker_sdk.errors import (
     BBoxError,
-    ConfigError,
+    DepthError,
+    GravityError,
     ImageDtypeError,
     ImageShapeError,
     InputError,
@@ -47,27 +47,18 @@ from kvtracker_sdk.errors import (
     ResolutionChangedError,
 )
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.geometry.pixel_transform import PixelTransform
-from kvtracker_sdk.preprocess import (
-    BBox,
-    Preprocessing,
-    box_mask,
-    fit_box,
-    for_family,
-    mask_bounds,
-    named,
-)
-from kvtracker_sdk.preprocess.undistort import Undistorter
+from kvtracker_sdk.preprocess import BBox
 
 __all__ = [
-    "FramePreparer",
-    "PreparedFrame",
+    "FrameInput",
     "check_bbox",
+    "check_camera",
+    "check_depth",
+    "check_frame",
+    "check_gravity",
     "check_image",
     "check_mask",
     "check_time_order",
-    "family_preprocessing",
-    "resolve_resolution",
     "to_rgb",
 ]
 
@@ -76,17 +67,54 @@ COLOR_ORDERS = ("rgb", "bgr")
 
 
 @dataclass(frozen=True)
-class PreparedFrame:
-    """A validated frame at model resolution, ready for a backend."""
+class FrameInput:
+    """One pushed frame after every check, in the pixels of the pushed image (H, W)."""
 
-    image: np.ndarray  # uint8 [h, w, 3] RGB at model resolution (object mode: masked or cropped)
-    mask: np.ndarray | None  # bool [h, w] at model resolution, None when none was given
-    input_size: tuple[int, int]  # (H, W) of the pushed image
+    image: np.ndarray  # [H, W, 3] RGB, uint8 or float in [0, 1]: the caller's array unless flipped
+    size: tuple[int, int]  # (H, W)
     timestamp: float | None
-    transform: PixelTransform  # pushed image pixel -> ``image`` pixel (crop and resize)
-    preprocessing: str  # name of the preprocessing that made ``image`` (recorded in maps)
-    camera: Camera | None = None  # the given intrinsics of the input image, undistorted
-    depth: np.ndarray | None = None  # float32 [h, w] sensor depth, metres, model image (0 = hole)
+    mask: np.ndarray | None  # bool [H, W] the app gave (None: none)
+    box: BBox | None  # (x0, y0, x1, y1) the app gave (None: none)
+    camera: Camera | None  # the frame's intrinsics (given for it, else the session's), as given
+    depth: np.ndarray | None  # float32 [H, W] sensor depth, metres (0 = invalid)
+    gravity: np.ndarray | None  # float64 [3], camera frame, pointing down
+
+    @property
+    def given(self) -> bool:
+        """The app gave the object's region with this frame (a mask or a box)."""
+        return self.mask is not None or self.box is not None
+
+
+def check_frame(
+    image: Any, *, min_side: int, color: Any = "rgb", timestamp: Any = None, mask: Any = None,
+    bbox: Any = None, camera: Any = None, depth: Any = None, depth_scale: Any = None,
+    gravity: Any = None, session_size: tuple[int, int] | None = None,
+    previous_timestamp: float | None = None,
+) -> FrameInput:
+    """Every value pushed with one frame, checked, or a typed InputError (nothing else happens).
+
+    ``min_side``: the model's patch size; ``session_size``: the (H, W) of the session's frames
+    (None: this is its first); ``previous_timestamp``: the session's last frame's stamp.
+    """
+    rgb = to_rgb(image, color)
+    frame_camera = check_camera(camera)
+    checked = check_image(rgb, min_side=min_side)
+    size = (int(checked.shape[0]), int(checked.shape[1]))
+    _check_size_and_camera(size, session_size, frame_camera)
+    stamp = _check_timestamp(timestamp)
+    object_mask = check_mask(mask, size) if mask is not None else None
+    box = check_bbox(bbox, size) if bbox is not None else None
+    check_time_order(stamp, previous_timestamp)
+    metres = check_depth(depth, depth_scale, size) if depth is not None else None
+    return FrameInput(checked, size, stamp, object_mask, box, frame_camera, metres,
+                      check_gravity(gravity))
+
+
+def check_camera(camera: Any) -> Camera | None:
+    """``camera`` if it is a ``Camera`` or None, else InputError."""
+    if camera is not None and not isinstance(camera, Camera):
+        raise InputError(f"camera must be a kvtracker_sdk.Camera or None, got {camera!r}")
+    return camera
 
 
 def check_image(image: Any, *, min_side: int) -> np.ndarray:
@@ -168,16 +196,14 @@ def check_bbox(bbox: Any, size: tuple[int, int]) -> BBox:
 
 
 def _check_size_and_camera(
-    size: tuple[int, int], session_input_size: tuple[int, int] | None, camera: Any
+    size: tuple[int, int], session_size: tuple[int, int] | None, camera: Camera | None
 ) -> None:
     """The frame (H, W) ``size`` must be the session's, and a given camera must describe it."""
-    if session_input_size is not None and size != tuple(session_input_size):
+    if session_size is not None and size != tuple(session_size):
         raise ResolutionChangedError(
-            f"image size changed from {tuple(session_input_size)} to {size} in mid-session; "
+            f"image size changed from {tuple(session_size)} to {size} in mid-session; "
             "call reset() to start a session at the new size"
         )
-    if camera is not None and not isinstance(camera, Camera):
-        raise InputError(f"camera must be a kvtracker_sdk.Camera, got {type(camera).__name__}")
     if camera is not None and camera.size != size:
         raise InputError(
             f"the camera describes {camera.height}x{camera.width} images, the frame is "
@@ -197,138 +223,65 @@ def _check_timestamp(timestamp: Any) -> float | None:
     return value
 
 
-def family_preprocessing(family: str, declared: Any = None) -> Preprocessing:
-    """The preprocessing of a backend: the one it declares (its ``preprocessing`` attribute, a
-    :class:`Preprocessing`), else the one registered for its ``family``; ConfigError if neither."""
-    if declared is None:
-        return for_family(family)
-    if not isinstance(declared, Preprocessing):
-        raise ConfigError(
-            f"a backend's 'preprocessing' must be a kvtracker_sdk.preprocess.Preprocessing, got "
-            f"{type(declared).__name__}"
-        )
-    return declared
-
-
-def resolve_resolution(
-    config: TrackerConfig, family: str, declared: Preprocessing | None = None
-) -> TrackerConfig:
-    """``config`` with its resolution set: unset (None) means the family's default (Pi3 308,
-    DA3 504). Raises ConfigError for a family without a registered or declared preprocessing."""
-    preprocessing = family_preprocessing(family, declared)
-    if config.resolution is not None:
-        return config
-    return config.updated(resolution=preprocessing.default_resolution)
-
-
-class FramePreparer:
-    """Turns user frames into ``PreparedFrame``s for one tracker configuration.
-
-    ``family``: the backend's model family, which picks the preprocessing of new maps (unless
-    the backend ``declared`` its own); a frame for a loaded map made by another preprocessing is
-    prepared with that map's (``prepare``).
-    """
-
-    def __init__(
-        self, config: TrackerConfig, *, patch_size: int, family: str, declared: Any = None
-    ) -> None:
-        self.preprocessing: Preprocessing = family_preprocessing(family, declared)
-        self.config = resolve_resolution(config, family, self.preprocessing)
-        self.patch_size = int(patch_size)
-        self._undistort = Undistorter()
-
-    @property
-    def resolution(self) -> int:
-        """The side d of the model input (its meaning is the preprocessing's)."""
-        assert self.config.resolution is not None  # resolved in __init__
-        return self.config.resolution
-
-    def pipeline(self, name: str | None) -> Preprocessing:
-        """The preprocessing called ``name`` (None: this tracker's, for new maps); a declared one
-        is found by its name too, registered or not."""
-        if name is None or name == self.preprocessing.name:
-            return self.preprocessing
-        return named(name)
-
-    def model_size(
-        self, input_size: tuple[int, int], preprocessing: Preprocessing | None = None
-    ) -> tuple[int, int]:
-        """(h, w) at model resolution for an input of (H, W)."""
-        pipeline = preprocessing or self.preprocessing
-        return pipeline.model_size(input_size, self.resolution, self.patch_size)
-
-    def prepare(
-        self,
-        image: Any,
-        *,
-        timestamp: Any = None,
-        mask: Any = None,
-        bbox: Any = None,
-        session_input_size: tuple[int, int] | None = None,
-        map_resolution: tuple[int, int] | None = None,
-        map_preprocessing: str | None = None,
-        camera: Camera | None = None,
-    ) -> PreparedFrame:
-        """Validate and convert one frame; raises an InputError subclass and changes nothing.
-
-        ``session_input_size``: the (H, W) of the session's first frame (None: first frame).
-        ``map_resolution``: the current map's model (h, w), which the frame must produce.
-        ``map_preprocessing``: the name of the preprocessing that made the current map's frames
-        (None: no map, use the family's). ``camera``: the frame's intrinsics (its size must be
-        the image's); a camera with distortion has the frame undistorted first.
-        """
-        pipeline = self.pipeline(map_preprocessing)
-        checked = check_image(image, min_side=self.patch_size)
-        size = (int(checked.shape[0]), int(checked.shape[1]))
-        _check_size_and_camera(size, session_input_size, camera)
-        stamp = _check_timestamp(timestamp)
-        object_mask = check_mask(mask, size) if mask is not None else None
-        box = check_bbox(bbox, size) if bbox is not None else None
-        if object_mask is None and box is not None:
-            object_mask = box_mask(box, size)
-        object_mode = self.config.mode is TrackingMode.OBJECT
-        if object_mode and object_mask is None:
-            raise MaskError(
-                "object mode needs a mask or a bbox with the first frame (the tracker predicts "
-                "the object's region in the frames after it)"
+def _checked_scale(depth_scale: Any, *, required: bool) -> float:
+    if depth_scale is None:
+        if required:
+            raise DepthError(
+                "an integer depth image needs depth_scale (metres per unit, e.g. 0.001 for "
+                "millimetres, 1/5000 for TUM PNGs); float depth is taken as metres"
             )
+        return 1.0
+    try:
+        scale = float(depth_scale)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DepthError(f"depth_scale must be a number, got {str(depth_scale)[:40]}") from exc
+    if not (math.isfinite(scale) and scale > 0):
+        raise DepthError(f"depth_scale must be finite and > 0 (metres per unit), got {scale}")
+    return scale
 
-        out_size = self.model_size(size, pipeline)
-        if map_resolution is not None and out_size != tuple(map_resolution):
-            raise ResolutionChangedError(
-                f"frames of {size} give model input {out_size}, the map was built at "
-                f"{tuple(map_resolution)}"
-            )
-        if camera is not None and camera.has_distortion:
-            checked = self._undistort(checked, camera)  # same size and K, lens model removed
-            camera = camera.undistorted()
-        crop = self.config.object.preprocessing is ObjectPreprocessing.CROP
-        resized, object_mask = self._resized(
-            checked, pipeline, out_size, object_mask, box, crop=object_mode and crop)
-        small_mask = pipeline.resize_mask(object_mask, out_size) if object_mask is not None else None
-        if small_mask is not None and not small_mask.any():
-            raise MaskError(f"the mask is too small: it selects no pixel at model size {out_size}")
-        image_out = resized.image  # a new array: never the caller's
-        if object_mode and not crop and small_mask is not None:
-            image_out[~small_mask] = 0  # black background (KV-Tracker object mode)
-        return PreparedFrame(
-            image_out, small_mask, size, stamp, resized.transform, pipeline.name, camera
-        )
 
-    def _resized(
-        self, checked: np.ndarray, pipeline: Any, out_size: tuple[int, int],
-        object_mask: np.ndarray | None, box: Any, *, crop: bool,
-    ) -> tuple[Any, np.ndarray | None]:
-        """The frame at model size, and the object mask in the same window: a crop around the
-        object (object mode with crops, when a mask is known), else the whole frame resized."""
-        if not (crop and object_mask is not None):
-            return pipeline.resize(checked, self.resolution, self.patch_size), object_mask
-        size = (int(checked.shape[0]), int(checked.shape[1]))
-        window = fit_box(
-            box if box is not None else mask_bounds(object_mask),
-            size,
-            margin=self.config.object.crop_margin_px,  # pixels of the pushed frame
-            aspect=out_size[0] / out_size[1],
+def check_depth(depth: Any, depth_scale: Any, size: tuple[int, int]) -> np.ndarray:
+    """float32 [H, W] metres (0 = invalid) of a depth image for a colour image of ``size``
+    (H, W); raises ``DepthError`` and changes nothing otherwise."""
+    if not isinstance(depth, np.ndarray):
+        raise DepthError(f"depth must be a numpy array, got {type(depth).__name__}")
+    if depth.ndim == 3 and depth.shape[2] == 1:
+        depth = depth[..., 0]
+    if depth.shape != tuple(size):
+        raise DepthError(
+            f"depth shape {depth.shape} does not match the colour image's {tuple(size)}: "
+            "register the depth to the colour camera first"
         )
-        x0, y0, x1, y1 = window
-        return pipeline.resize_crop(checked, window, out_size), object_mask[y0:y1, x0:x1]
+    if np.issubdtype(depth.dtype, np.integer) or depth.dtype == np.bool_:
+        if depth.dtype == np.bool_:
+            raise DepthError("depth must be numbers (raw units or metres), got a bool array")
+        scale = _checked_scale(depth_scale, required=True)
+        if depth.dtype.kind == "i" and depth.min() < 0:
+            raise DepthError("depth has negative values (invalid pixels must be 0)")
+        return (depth.astype(np.float64) * scale).astype(np.float32)
+    if not np.issubdtype(depth.dtype, np.floating):
+        raise DepthError(f"depth dtype must be integer (raw) or float (metres), got {depth.dtype}")
+    scale = _checked_scale(depth_scale, required=False)
+    metres = np.asarray(depth, dtype=np.float64) * scale
+    valid = np.isfinite(metres)
+    if (metres[valid] < 0).any():
+        raise DepthError("depth has negative values (invalid pixels must be 0)")
+    out = np.where(valid, metres, 0.0).astype(np.float32)
+    if not np.isfinite(out).all():  # a finite float64 beyond float32's range
+        raise DepthError("depth values overflow float32 metres: check depth_scale")
+    return out
+
+
+def check_gravity(gravity: Any) -> np.ndarray | None:
+    """The gravity vector as float64 [3] (camera frame, pointing down), or GravityError."""
+    if gravity is None:
+        return None
+    try:
+        vector = np.asarray(gravity, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise GravityError(f"gravity must be 3 numbers, got {str(gravity)[:60]}") from exc
+    if vector.shape != (3,) or not np.isfinite(vector).all():
+        raise GravityError(f"gravity must be 3 finite numbers (camera frame), got {vector!r}")
+    if float(np.linalg.norm(vector)) < 1e-6:
+        raise GravityError("gravity is (nearly) zero: it must give a direction")
+    return vector

@@ -32,7 +32,7 @@ import numpy as np
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
+from kvtracker_sdk.tracking.core.model_input import PreparedFrame
 
 __all__ = ["FrameIntrinsics", "IntrinsicsFit", "fit_intrinsics"]
 

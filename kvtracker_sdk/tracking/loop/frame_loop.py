@@ -35,7 +35,7 @@ from kvtracker_sdk.tracking.core.events import (
     StateChangeEvent,
     WorldFrameChangedEvent,
 )
-from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
+from kvtracker_sdk.tracking.core.model_input import PreparedFrame
 from kvtracker_sdk.tracking.core.quality import ConfidenceMonitor, frame_confidence
 from kvtracker_sdk.tracking.loop.reporting import WorldFrameChange, failure_event, rebuild_events
 from kvtracker_sdk.tracking.loop.states import TrackingEvent, next_state

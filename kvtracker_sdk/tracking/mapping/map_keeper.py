@@ -49,8 +49,8 @@ from kvtracker_sdk.config import ObjectPreprocessing, TrackerConfig, TrackingMod
 from kvtracker_sdk.errors import MappingFailedError, MapPreprocessingError, StateError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking.core.frame_input import PreparedFrame
 from kvtracker_sdk.tracking.core.gauge import keyframe_corrections
+from kvtracker_sdk.tracking.core.model_input import PreparedFrame
 from kvtracker_sdk.tracking.mapping import keyframes as policy
 from kvtracker_sdk.tracking.mapping.failures import MappingFailure, backoff_frames, mapping_error
 from kvtracker_sdk.tracking.mapping.map_builder import (

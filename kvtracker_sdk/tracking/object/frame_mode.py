@@ -1,24 +1,26 @@
 """What a tracking mode adds around the frame loop's step, at two fixed points.
 
-``Tracker.push_frame`` calls its mode ``before_step`` (with the raw frame: which mask the frame is
-prepared with) and ``after_step`` (with the step's pose: what the frame says about the object).
+``Tracker.push_frame`` calls its mode ``before_step`` (with the frame as checked on entry, a
+``FrameInput``: which mask the frame is prepared with) and ``after_step`` (with the step's pose:
+what the frame says about the object).
 Scene mode (``SceneFrames``) adds nothing; object mode (``ObjectFrames``) keeps everything about
 the object's region in one place: the predicted region or the segmenter's mask before the step, a
 whole-frame search against a loaded object map, and after the step the region, the object's pose
 in the camera, and the count of frames searched in vain. Following an object-mode frame to its
-pose thus reads the facade, this module, frame preparation and the frame loop, each once.
+pose thus reads the facade, the frame's checks, this module (before the step), the frame's
+preparation for the model, the frame loop, and this module again (after the step).
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.geometry.camera import Camera
+from kvtracker_sdk.tracking.core.frame_input import FrameInput
 from kvtracker_sdk.tracking.object.object_region import RegionPropagator
 from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.types import ObjectFrame, ObjectRegion
@@ -34,8 +36,8 @@ def _ms(since: float) -> float:
 class RegionInput:
     """What ``before_step`` decided for one frame: the mask it is prepared with."""
 
-    mask: Any  # the app's mask, or the predicted / segmented / whole-frame one (None: no mask)
-    given: bool  # the app passed a mask or a box with this frame
+    mask: np.ndarray | None  # bool [H, W]: the app's, or the predicted / segmented / whole-frame
+    # one; None: none (the app's box alone, or no region known yet)
     segmented: np.ndarray | None = None  # the segmenter's mask, if it was asked
     searching: bool = False  # tracked with the whole frame against a loaded map (no keyframe)
     prompt_ms: float = 0.0  # predicting the region and asking the segmenter
@@ -65,16 +67,17 @@ class FrameMode:
         return None
 
     def before_step(
-        self, image: np.ndarray, index: int, kf_map: KeyframeMap | None, mask: Any, bbox: Any,
-        *, min_side: int, start: float,
+        self, frame: FrameInput, index: int, kf_map: KeyframeMap | None, *, start: float
     ) -> RegionInput:
-        return RegionInput(mask, mask is not None or bbox is not None)
+        """The mask to prepare ``frame`` with (``start``: when the step began, for its timing)."""
+        return RegionInput(frame.mask)
 
     def after_step(
-        self, regions_in: RegionInput, bbox: Any, size: tuple[int, int], index: int,
-        kf_map: KeyframeMap | None, T_world_cam: np.ndarray | None, camera: Camera | None,
-        timings: dict[str, float],
+        self, regions_in: RegionInput, frame: FrameInput, index: int, kf_map: KeyframeMap | None,
+        T_world_cam: np.ndarray | None, camera: Camera | None, timings: dict[str, float],
     ) -> ObjectObservation:
+        """What the step (its valid pose ``T_world_cam`` or None, the input image's ``camera``)
+        says about the object; adds its time to ``timings``."""
         return _NOTHING
 
     def object_frame(self, kf_map: KeyframeMap | None) -> ObjectFrame | None:
@@ -110,37 +113,28 @@ class ObjectFrames(FrameMode):
         return self.regions.last
 
     def before_step(
-        self, image: np.ndarray, index: int, kf_map: KeyframeMap | None, mask: Any, bbox: Any,
-        *, min_side: int, start: float,
+        self, frame: FrameInput, index: int, kf_map: KeyframeMap | None, *, start: float
     ) -> RegionInput:
         """The mask to prepare the frame with: the app's, else the region predicted from the map
         (or the segmenter's mask), else, against a loaded map with no pose yet, the whole frame."""
-        given = mask is not None or bbox is not None
-        segmented, searching = None, False
-        if not given:
-            mask, segmented = self.regions.input_mask(
-                image, index, kf_map, self.segmenter, min_side=min_side)
-            if mask is None and kf_map is not None:  # a loaded map, no pose yet: search
-                mask = self.regions.search_mask(image, min_side=min_side)
-                searching = True
-        return RegionInput(mask, given, segmented, searching, _ms(start))
+        if frame.given:
+            return RegionInput(frame.mask, prompt_ms=_ms(start))
+        mask, segmented = self.regions.input_mask(frame, index, kf_map, self.segmenter)
+        searching = mask is None and kf_map is not None  # a loaded map, no pose yet: search
+        if searching:
+            mask = np.ones(frame.size, dtype=bool)
+        return RegionInput(mask, segmented, searching, _ms(start))
 
     def after_step(
-        self, regions_in: RegionInput, bbox: Any, size: tuple[int, int], index: int,
-        kf_map: KeyframeMap | None, T_world_cam: np.ndarray | None, camera: Camera | None,
-        timings: dict[str, float],
+        self, regions_in: RegionInput, frame: FrameInput, index: int, kf_map: KeyframeMap | None,
+        T_world_cam: np.ndarray | None, camera: Camera | None, timings: dict[str, float],
     ) -> ObjectObservation:
         """The frame's region and the object's pose in its camera (``T_world_cam``: the step's
         valid pose, else None); counts a search that found nothing."""
         region_start = time.perf_counter()
-        given = regions_in.given
-        supplied = self.regions.supplied(size, index, regions_in.mask if given else None,
-                                         bbox if given else None, regions_in.segmented)
-        region, T_cam_object = self.regions.observe(
-            index, kf_map, T_world_cam=T_world_cam, camera=camera, supplied=supplied)
-        object_frame = None
-        if T_cam_object is not None:  # the object frame it refers to
-            object_frame = self.regions.object_frame(kf_map)
+        region, T_cam_object, object_frame = self.regions.observe(
+            frame, index, kf_map, T_world_cam=T_world_cam, camera=camera,
+            segmented=regions_in.segmented)
         timings["region"] = _ms(region_start) + (
             0.0 if regions_in.segmented is not None else regions_in.prompt_ms)
         missed = regions_in.searching and T_world_cam is None

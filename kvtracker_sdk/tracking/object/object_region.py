@@ -23,12 +23,15 @@ network or estimated from its points):
 The region's mask is the projected points splatted on a grid whose cell matches their spacing,
 closed and hole-filled (a silhouette, not a depth test: points on the far side of the object
 fall inside it anyway); its box holds every projected point (clipped to the image).
+
+Object mode (``frame_mode.ObjectFrames``) asks a ``RegionPropagator`` once before a frame's step
+(``input_mask``) and once after it (``observe``), with the frame as checked on entry
+(``FrameInput``).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -37,7 +40,7 @@ from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.geometry.boxes import ImageBox, grow_box, mask_box
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.preprocess import box_mask
-from kvtracker_sdk.tracking.core.frame_input import check_bbox, check_image, check_mask
+from kvtracker_sdk.tracking.core.frame_input import FrameInput
 from kvtracker_sdk.tracking.object.object_model import ObjectModelCache
 from kvtracker_sdk.tracking.object.segmenter import Segmenter, ask_segmenter
 from kvtracker_sdk.types import ObjectFrame, ObjectRegion, RegionSource
@@ -47,7 +50,8 @@ __all__ = [
     "RegionPropagator",
     "grown_mask",
     "project_region",
-    "region_of_input",
+    "projected_mask",
+    "region_of_mask",
     "splat_mask",
 ]
 
@@ -109,13 +113,12 @@ def grown_mask(region: ObjectRegion) -> np.ndarray:
     return mask & context
 
 
-def project_region(
-    points: np.ndarray, T_world_cam: np.ndarray, camera: Camera, *, margin: float,
-    frame_index: int, source: RegionSource = RegionSource.PREDICTED,
-) -> ObjectRegion | None:
-    """The region of world ``points`` [N, 3] seen by a camera at ``T_world_cam`` with intrinsics
-    ``camera`` (its image size is the region's); None when fewer than 8 points lie in front of
-    the camera and inside the image (the object is out of view)."""
+def projected_mask(
+    points: np.ndarray, T_world_cam: np.ndarray, camera: Camera
+) -> tuple[np.ndarray, ImageBox] | None:
+    """(bool [H, W] silhouette, box) of world ``points`` [N, 3] seen by a camera at
+    ``T_world_cam`` with intrinsics ``camera`` (its image size is the mask's); None when fewer
+    than 8 points lie in front of the camera and inside the image (the object is out of view)."""
     T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=np.float64))
     local = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
     in_front = local[:, 2] > 1e-6 * max(float(np.abs(local[:, 2]).max(initial=0.0)), 1e-12)
@@ -138,21 +141,35 @@ def project_region(
     mask = splat_mask(uv[visible], size, box)
     if not mask.any():
         return None
-    return ObjectRegion.from_mask(mask, box=box, context_box=grow_box(box, margin, size),
-                                  source=source, frame_index=frame_index)
+    return mask, box
 
 
-def region_of_input(
+def region_of_mask(
     mask: np.ndarray, box: ImageBox | None, *, margin: float, frame_index: int,
     source: RegionSource,
 ) -> ObjectRegion:
-    """The region of a mask given by the app or its segmenter (``box``: the app's box, if it gave
-    one; else the mask's tight box). ``mask`` must select a pixel."""
+    """The region over bool [H, W] ``mask``, which must select a pixel. ``box``: the app's box,
+    or the projected points' (``projected_mask``); None: the mask's tight box. The region's
+    context box is that box dilated by ``margin`` pixels, clipped to the image."""
     size = (int(mask.shape[0]), int(mask.shape[1]))
     tight = box if box is not None else mask_box(mask)
     assert tight is not None  # validated masks select a pixel
-    return ObjectRegion.from_mask(mask, box=tight, context_box=grow_box(tight, margin, size),
-                                  source=source, frame_index=frame_index)
+    context = grow_box(tight, margin, size)
+    return ObjectRegion.from_mask(mask, box=tight, context_box=context, source=source,
+                                  frame_index=frame_index)
+
+
+def project_region(
+    points: np.ndarray, T_world_cam: np.ndarray, camera: Camera, *, margin: float,
+    frame_index: int, source: RegionSource = RegionSource.PREDICTED,
+) -> ObjectRegion | None:
+    """The region of world ``points`` [N, 3] seen by a camera at ``T_world_cam`` with intrinsics
+    ``camera`` (``projected_mask``; None: the object is out of view)."""
+    projected = projected_mask(points, T_world_cam, camera)
+    if projected is None:
+        return None
+    mask, box = projected
+    return region_of_mask(mask, box, margin=margin, frame_index=frame_index, source=source)
 
 
 class RegionPropagator:
@@ -191,75 +208,52 @@ class RegionPropagator:
                 return region
         return None if self.last is None else self.last.held()
 
-    def search_mask(self, image: Any, *, min_side: int) -> np.ndarray:
-        """bool [H, W], all True: the whole frame, to track a frame with against a loaded object
-        map before any pose places the object (the object may be anywhere in view)."""
-        checked = check_image(image, min_side=min_side)
-        return np.ones(checked.shape[:2], dtype=bool)
-
     def input_mask(
-        self, image: Any, index: int, kf_map: KeyframeMap | None, segmenter: Segmenter | None,
-        *, min_side: int,
+        self, frame: FrameInput, index: int, kf_map: KeyframeMap | None,
+        segmenter: Segmenter | None,
     ) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(mask to track frame ``index`` with, pushed without one; the segmenter's mask if it
         gave one). The prompt's mask grown by ``grown_mask``, or the segmenter's answer to the
-        prompt. (None, None) before any region is known: frame preparation then says so."""
+        prompt. (None, None) before any region is known."""
         prompt = self.prompt(index, kf_map)
         if prompt is None:
             return None, None
-        if segmenter is not None:
-            checked = check_image(image, min_side=min_side)
-            if checked.shape[:2] == prompt.image_size:  # else preparation reports the new size
-                answer = ask_segmenter(segmenter, checked, prompt, index)
-                if answer is not None:
-                    return answer, answer
+        if segmenter is not None and frame.size == prompt.image_size:
+            answer = ask_segmenter(segmenter, frame.image, prompt, index)
+            if answer is not None:
+                return answer, answer
         return grown_mask(prompt), None
 
-    def supplied(
-        self, size: tuple[int, int], index: int, mask: Any, bbox: Any,
-        segmented: np.ndarray | None,
-    ) -> ObjectRegion | None:
-        """The region the app (GIVEN: its ``mask`` or else ``bbox``, both validated already) or
-        its segmenter (SEGMENTED) supplied for frame ``index``; None if neither did."""
-        if segmented is not None:
-            return region_of_input(segmented, None, margin=self.margin, frame_index=index,
-                                   source=RegionSource.SEGMENTED)
-        if mask is not None:
-            return region_of_input(check_mask(mask, size), None, margin=self.margin,
-                                   frame_index=index, source=RegionSource.GIVEN)
-        if bbox is None:
-            return None
-        box = check_bbox(bbox, size)
-        return region_of_input(box_mask(box, size), box, margin=self.margin, frame_index=index,
-                               source=RegionSource.GIVEN)
-
     def observe(
-        self, index: int, kf_map: KeyframeMap | None, *, T_world_cam: np.ndarray | None,
-        camera: Camera | None, supplied: ObjectRegion | None,
-    ) -> tuple[ObjectRegion | None, np.ndarray | None]:
-        """Frame ``index``'s region and ``T_cam_object`` after tracking.
+        self, frame: FrameInput, index: int, kf_map: KeyframeMap | None, *,
+        T_world_cam: np.ndarray | None, camera: Camera | None, segmented: np.ndarray | None,
+    ) -> tuple[ObjectRegion | None, np.ndarray | None, ObjectFrame | None]:
+        """Frame ``index``'s region, ``T_cam_object`` and the object frame that refers to, after
+        tracking (None for each that is unknown).
 
-        ``T_world_cam``: the frame's pose if valid (else None); ``camera``: its input intrinsics;
-        ``supplied``: a GIVEN or SEGMENTED region for this frame (it wins over the projection).
+        ``T_world_cam``: the frame's pose if valid (else None); ``camera``: its input intrinsics.
+        The region is the mask the app gave with ``frame`` (GIVEN) or its ``segmented`` mask
+        (SEGMENTED), else the projection at the pose (PREDICTED), else the last region (HELD).
         """
         model = self.models.get(kf_map)
         if camera is not None:
             self._camera = camera
-        T_cam_object = None
-        region = supplied
-        if T_world_cam is not None:
-            pose = np.asarray(T_world_cam, dtype=np.float64)
+        pose = None if T_world_cam is None else np.asarray(T_world_cam, dtype=np.float64)
+        if pose is not None:
             self._poses = [*self._poses[-1:], (index, pose)]
-            if model is not None:
-                T_cam_object = np.linalg.inv(pose) @ model.frame.T_world_object
-                if region is None and camera is not None:
-                    region = project_region(model.points, pose, camera, margin=self.margin,
-                                            frame_index=index)
-        if region is None and self.last is not None:
-            region = self.last.held()
-        if region is not None:
-            self.last = region
-        return region, T_cam_object
+        drawn = _supplied(frame, segmented)
+        if drawn is None and pose is not None and model is not None and camera is not None:
+            projected = projected_mask(model.points, pose, camera)
+            drawn = None if projected is None else (*projected, RegionSource.PREDICTED)
+        if drawn is not None:
+            mask, box, source = drawn
+            self.last = region_of_mask(mask, box, margin=self.margin, frame_index=index,
+                                       source=source)
+        elif self.last is not None:
+            self.last = self.last.held()
+        if pose is None or model is None:
+            return self.last, None, None
+        return self.last, np.linalg.inv(pose) @ model.frame.T_world_object, model.frame
 
     def _extrapolated(self, index: int) -> np.ndarray | None:
         """The pose at ``index`` at constant velocity from the valid poses at ``index - 1`` and
@@ -273,3 +267,17 @@ class RegionPropagator:
         step = np.linalg.inv(recent[0][1]) @ last  # motion over one frame, in the camera frame
         return last @ step
 
+
+def _supplied(
+    frame: FrameInput, segmented: np.ndarray | None
+) -> tuple[np.ndarray, ImageBox | None, RegionSource] | None:
+    """(mask, box, source) of the region the app (its mask, else its box) or its segmenter
+    supplied for ``frame``; None if neither did. A frame the app gave a region with was never
+    segmented."""
+    if segmented is not None:
+        return segmented, None, RegionSource.SEGMENTED
+    if frame.mask is not None:
+        return frame.mask, None, RegionSource.GIVEN
+    if frame.box is not None:
+        return box_mask(frame.box, frame.size), frame.box, RegionSource.GIVEN
+    return None

@@ -32,12 +32,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
 from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
-from kvtracker_sdk.errors import GravityError, InputError, StateError
+from kvtracker_sdk.errors import InputError, StateError
 from kvtracker_sdk.geometry.sim3 import Sim3
 from kvtracker_sdk.tracking.mapping.map_builder import RebuildOutcome
 from kvtracker_sdk.tracking.object.object_model import fused_object_points
@@ -54,7 +53,6 @@ __all__ = [
     "RELEVEL_DEG",
     "WorldAligner",
     "WorldChange",
-    "check_gravity",
     "level_rotation",
     "measured_height",
     "pixel_angle",
@@ -76,21 +74,6 @@ class WorldChange:
     transform: Sim3
     reason: WorldAlignment
     world: MapWorld
-
-
-def check_gravity(gravity: Any) -> np.ndarray | None:
-    """The gravity vector as float64 [3] (camera frame, pointing down), or GravityError."""
-    if gravity is None:
-        return None
-    try:
-        vector = np.asarray(gravity, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError) as exc:
-        raise GravityError(f"gravity must be 3 numbers, got {str(gravity)[:60]}") from exc
-    if vector.shape != (3,) or not np.isfinite(vector).all():
-        raise GravityError(f"gravity must be 3 finite numbers (camera frame), got {vector!r}")
-    if float(np.linalg.norm(vector)) < 1e-6:
-        raise GravityError("gravity is (nearly) zero: it must give a direction")
-    return vector
 
 
 def transform_map(kf_map: KeyframeMap, transform: Sim3, *, generation: int,
