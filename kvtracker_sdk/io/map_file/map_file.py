@@ -216,6 +216,49 @@ def _remove_safetensors_leftovers(folder: Path) -> None:
                     os.unlink(entry.path)
 
 
+def _write_locked(
+    target: Path, keyframe_map: KeyframeMap, info: MapInfo, *, compact: bool
+) -> tuple[MapInfo, int]:
+    """Write the map file at ``target`` atomically; the sealed header and the file size.
+
+    The K/V are hashed and written straight from the cache's buffers, not from a snapshot copy
+    (a second copy of the whole cache in new memory, which costs more than the write itself): the
+    cache's lock keeps them unchanged until their bytes are in the page cache, and is released
+    before the fsync, the slow part. One pass over the data: the digests are computed on another
+    thread while it is written, then the header (written first with placeholders of the same
+    length) is rewritten.
+    """
+    with contextlib.ExitStack() as locked:
+        locked.enter_context(keyframe_map.cache.lock)
+        tensors, encoding, image_bytes = map_to_tensors(
+            keyframe_map, info.resolution, compact=compact, cache_views=True
+        )
+        info = replace(
+            info,
+            keyframe_encoding=encoding,
+            image_codec=RAW if image_bytes is None else PNG,
+            image_bytes=image_bytes,
+            tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
+        )
+        try:
+            with atomic_write(target, binary=True) as handle:
+                with ThreadPoolExecutor(max_workers=1) as hashing:
+                    digests = hashing.submit(sha256_of, tensors)
+
+                    def sealed() -> dict[str, str]:
+                        nonlocal info
+                        info = replace(info, tensor_sha256=digests.result())
+                        return encode_metadata(info)
+
+                    size = write_safetensors(
+                        handle, tensors, encode_metadata(info), final_metadata=sealed
+                    )
+                locked.close()  # the data is hashed and in the page cache: the cache may change
+        except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+            raise MapIOError(f"cannot write map {target}: {exc}") from exc
+    return info, size
+
+
 def save_map(
     path: PathLike,
     keyframe_map: KeyframeMap,
@@ -246,41 +289,7 @@ def save_map(
     info = replace(info, camera=camera, camera_source=camera_source if camera else None)
     if compact_keyframes is None:
         compact_keyframes = keyframe_map.cache.quantized
-    # The K/V are hashed and written straight from the cache's buffers, not from a snapshot copy
-    # (a second copy of the whole cache in new memory, which costs more than the write itself):
-    # the cache's lock keeps them unchanged until their bytes are in the page cache, and is
-    # released before the fsync, the slow part.
-    with contextlib.ExitStack() as locked:
-        locked.enter_context(keyframe_map.cache.lock)
-        tensors, encoding, image_bytes = map_to_tensors(
-            keyframe_map, info.resolution, compact=compact_keyframes, cache_views=True
-        )
-        info = replace(
-            info,
-            keyframe_encoding=encoding,
-            image_codec=RAW if image_bytes is None else PNG,
-            image_bytes=image_bytes,
-            tensor_sha256=dict.fromkeys(tensors, _PLACEHOLDER_DIGEST),
-        )
-        # one pass over the data: the digests are computed on other threads while it is
-        # written, then the header (written first with placeholders of the same length) is
-        # rewritten
-        try:
-            with atomic_write(target, binary=True) as handle:
-                with ThreadPoolExecutor(max_workers=1) as hashing:
-                    digests = hashing.submit(sha256_of, tensors)
-
-                    def sealed() -> dict[str, str]:
-                        nonlocal info
-                        info = replace(info, tensor_sha256=digests.result())
-                        return encode_metadata(info)
-
-                    size = write_safetensors(
-                        handle, tensors, encode_metadata(info), final_metadata=sealed
-                    )
-                locked.close()  # the data is hashed and in the page cache: the cache may change
-        except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
-            raise MapIOError(f"cannot write map {target}: {exc}") from exc
+    info, size = _write_locked(target, keyframe_map, info, compact=compact_keyframes)
     _remove_safetensors_leftovers(target.parent)
     _log.info("map saved", path=str(target), keyframes=info.num_keyframes, bytes=size)
     return replace(info, file_size=size)
