@@ -603,7 +603,7 @@ def tum_frames(run: Run) -> list[np.ndarray]:
 
 def session_once(run: Run, backend: Any, frames: list[np.ndarray], count: int) -> dict[str, Any]:
     from kvtracker_sdk.config import TrackerConfig
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
     config = TrackerConfig.from_dict({
         "resolution": run.args.session_resolution, "threading": {"async_mapping": True},

@@ -45,7 +45,7 @@ from kvtracker_sdk.backends.base import BackendInfo, MapResult, TrackResult  # n
 from kvtracker_sdk.backends.simulated import SimulatedBackend  # noqa: E402
 from kvtracker_sdk.cache.kv_cache import KVCache  # noqa: E402
 from kvtracker_sdk.config import TrackerConfig  # noqa: E402
-from kvtracker_sdk.tracking.tracker import Tracker  # noqa: E402
+from kvtracker_sdk.tracking.facade.tracker import Tracker  # noqa: E402
 from kvtracker_sdk.types import FrameResult, HeadSet  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"

@@ -37,7 +37,7 @@ import torch
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info
 from kvtracker_sdk.io.sources.sources import TumSource
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 RESULTS = Path(__file__).parent / "results"
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

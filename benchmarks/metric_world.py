@@ -54,7 +54,7 @@ from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.se3 import project_to_rotation
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
 from kvtracker_sdk.tracking.core.events import WorldFrameChangedEvent
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import FrameResult
 
 RESULTS = Path(__file__).parent / "results"

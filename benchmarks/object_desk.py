@@ -55,8 +55,8 @@ from kvtracker_sdk.cli.demo_trajectory import desk_orbit, handheld_orbit
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.boxes import box_iou
 from kvtracker_sdk.geometry.sim3 import umeyama_alignment
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.tracking.object.object_model import fused_object_points, sampling_step
-from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, ObjectFrame, RegionSource
 
 RESULTS = Path(__file__).parent / "results"

@@ -53,8 +53,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from kvtracker_sdk.backends.torch_backend import TorchBackend
     from kvtracker_sdk.io.map_file.map_file import read_map_info
     from kvtracker_sdk.io.sources.camera_files import read_camera_file
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
     from kvtracker_sdk.tracking.object.segmenter import Segmenter
-    from kvtracker_sdk.tracking.tracker import Tracker
 
 # public name -> module that defines it (loaded lazily)
 _LAZY: dict[str, str] = {
@@ -64,7 +64,7 @@ _LAZY: dict[str, str] = {
     "SimulatedBackend": "kvtracker_sdk.backends.simulated",
     "TorchBackend": "kvtracker_sdk.backends.torch_backend",
     "Segmenter": "kvtracker_sdk.tracking.object.segmenter",
-    "Tracker": "kvtracker_sdk.tracking.tracker",
+    "Tracker": "kvtracker_sdk.tracking.facade.tracker",
     "read_camera_file": "kvtracker_sdk.io.sources.camera_files",
     "read_map_info": "kvtracker_sdk.io.map_file.map_file",
 }

@@ -27,7 +27,7 @@ from kvtracker_sdk.runs.run_loop import InputFrame
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["FrameObserver", "LiveOptions", "LiveOutputs", "live_outputs"]
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 from kvtracker_sdk.types import FrameResult, ObjectFrame
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["object_document"]
 

@@ -42,7 +42,7 @@ from kvtracker_sdk.runs.run_loop import RunRecord
 if TYPE_CHECKING:
     from kvtracker_sdk.cache.keyframe_map import KeyframeMap
     from kvtracker_sdk.eval.report import EvaluationReport
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["RunDescription", "RunOutputs", "auto_voxel_size", "write_outputs"]
 

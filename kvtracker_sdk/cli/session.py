@@ -32,7 +32,7 @@ from kvtracker_sdk.types import FrameResult
 if TYPE_CHECKING:
     from kvtracker_sdk.io.map_file.map_format import MapInfo
     from kvtracker_sdk.tracking.core.events import StateChangeEvent
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
     from kvtracker_sdk.viz.rerun_sink import RerunSink
 
 __all__ = ["OutputOptions", "check_outputs", "run_session"]

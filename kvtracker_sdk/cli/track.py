@@ -25,7 +25,7 @@ from kvtracker_sdk.runs.run_loop import BadFramePolicy
 from kvtracker_sdk.types import StateReason
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["register", "track"]
 

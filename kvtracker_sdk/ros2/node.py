@@ -34,7 +34,7 @@ from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.types import FrameResult, TrackingState
 
 if TYPE_CHECKING:
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["TrackerNode", "image_from_message"]
 

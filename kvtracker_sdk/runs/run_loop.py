@@ -35,7 +35,7 @@ from kvtracker_sdk.types import FrameResult, TrackingState
 
 if TYPE_CHECKING:  # the tracker pulls in torch: imported by the commands when they run
     from kvtracker_sdk.tracking.core.events import KeyframeEvent, StateChangeEvent
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = [
     "BadFrame",

@@ -35,8 +35,8 @@ from kvtracker_sdk.runs.run_loop import (
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
     from kvtracker_sdk.tracking.core.events import StateChangeEvent
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
     from kvtracker_sdk.tracking.object.segmenter import Segmenter
-    from kvtracker_sdk.tracking.tracker import Tracker
 
 __all__ = ["open_tracker", "track"]
 
@@ -57,7 +57,7 @@ def open_tracker(
     (``camera`` overrides it). With ``load_map`` it relocalises against that saved map;
     ``config`` then changes the map's saved configuration (None keeps it). ``segmenter``:
     object mode's optional ``Segmenter``."""
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
     intrinsics = camera if camera is not None else (
         run_input.camera if run_input is not None else None)

@@ -24,7 +24,7 @@ from kvtracker_sdk.scale.sequence_run import torch_threads
 
 if TYPE_CHECKING:
     from kvtracker_sdk.backends.base import Backend
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
     from kvtracker_sdk.types import FrameResult
 
 __all__ = ["TrackerHost", "decode_frame", "result_to_dict", "simulated_backend"]

@@ -1,5 +1,5 @@
-"""Layer 5, the SDK's brain: ``Tracker`` (``tracker.py``, the facade) over subpackages by concern,
-in the order ``pyproject.toml``'s import contract enforces (each imports only those below it):
+"""Layer 5, the SDK's brain: ``Tracker`` (``facade/``: the tracker and its member groups) over
+subpackages by concern, in the order ``pyproject.toml``'s import contract enforces (each imports only those below it):
 
 * ``live`` and ``persistence``: live intake on a worker thread; the tracker's side of map files;
 * ``loop``: the per-frame loop and the tracking state table;
@@ -17,12 +17,12 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # pragma: no cover
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["Tracker"]
 
 
 def __getattr__(name: str) -> Any:
     if name == "Tracker":
-        return importlib.import_module("kvtracker_sdk.tracking.tracker").Tracker
+        return importlib.import_module("kvtracker_sdk.tracking.facade.tracker").Tracker
     raise AttributeError(f"module 'kvtracker_sdk.tracking' has no attribute {name!r}")

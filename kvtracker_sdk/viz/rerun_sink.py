@@ -37,7 +37,7 @@ from kvtracker_sdk.types import FrameResult
 if TYPE_CHECKING:
     from kvtracker_sdk.cache.keyframe_map import Keyframe, KeyframeMap
     from kvtracker_sdk.tracking.core.events import StateChangeEvent, Subscription
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["RerunSink"]
 

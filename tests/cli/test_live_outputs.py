@@ -59,7 +59,7 @@ def test_an_interrupted_run_keeps_its_bag(tmp_path: Path, monkeypatch: pytest.Mo
     dev_dependency("rosbags")
     from rosbags.highlevel import AnyReader
 
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
     push = Tracker.push_frame
     pushed = []

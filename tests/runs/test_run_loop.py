@@ -19,7 +19,7 @@ from kvtracker_sdk.cli.progress import FrameProgress
 from kvtracker_sdk.cli.session import OutputOptions, run_session
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.runs.run_loop import InputFrame, run_frames
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 SIZE = (196, 252)  # the model resolution of d = 224 for 4:3 frames: no resize
 

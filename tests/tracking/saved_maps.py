@@ -24,7 +24,7 @@ from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.cache.keyframe_map import KeyframeMap
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.io.map_file.map_file import MapInfo
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.helpers import PROJECT_ROOT, shared_path
 from tests.tracking.sim_session import drive, make_tracker
 
@@ -101,7 +101,7 @@ def save_pi3_session(folder: Path) -> Saved:
 
 _CHILD = """
 import json, sys
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.io.map_factory import map_digest
 reports = []
 for path, spec in json.loads(sys.argv[1]):

@@ -16,7 +16,7 @@ from kvtracker_sdk.tracking.core.events import (
     MapUpdatedEvent,
     StateChangeEvent,
 )
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, TrackingState
 
 # Rendering at Pi3's model resolution of d = 224 for 4:3 frames (196 x 252) skips the resize, and

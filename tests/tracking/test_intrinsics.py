@@ -13,7 +13,7 @@ from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.tracking.core.intrinsics import fit_intrinsics
 from kvtracker_sdk.tracking.core.model_input import FramePreparer
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.helpers import shared_path
 
 SIZE = (240, 320)  # the rendered frames; the tracker resizes them to 224x294 at resolution 308

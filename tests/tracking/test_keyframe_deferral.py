@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from kvtracker_sdk.backends.simulated_scene import orbit
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.tracking.gated_backend import GatedBackend
 from tests.tracking.sim_session import WAIT_S, Session, drive, make_tracker
 

@@ -18,8 +18,8 @@ from kvtracker_sdk.backends.simulated_scene import decode_frame_index, orbit
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import InputError, StateError
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.tracking.live.live_intake import LiveStats
-from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, HeadSet
 
 SIZE = (112, 140)

@@ -14,7 +14,7 @@ from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.geometry.camera import Camera, IntrinsicsSource
 from kvtracker_sdk.io.map_file.map_file import read_map_info
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.cli.invoke import invoke
 
 SIZE = (240, 320)

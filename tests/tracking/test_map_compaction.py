@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 torch = pytest.importorskip("torch")
 

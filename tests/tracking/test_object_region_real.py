@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from kvtracker_sdk.geometry.camera import Camera
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import RegionSource
 from tests.helpers import shared_path
 

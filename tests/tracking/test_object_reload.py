@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from benchmarks.object_desk import SIZE, Layout, first_walk, layout, second_walk
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import RegionSource, StateReason, TrackingState
 
 FRAMES = 150

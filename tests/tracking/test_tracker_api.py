@@ -19,9 +19,9 @@ from kvtracker_sdk.cli.demo_trajectory import handheld_orbit
 from kvtracker_sdk.errors import InputError, StateError
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.tracking.core.events import EventKind, Subscription
+from kvtracker_sdk.tracking.facade.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker_renames import RENAMED
 from kvtracker_sdk.tracking.live.live_intake import LiveStats
-from kvtracker_sdk.tracking.tracker import Tracker
-from kvtracker_sdk.tracking.tracker_renames import RENAMED
 from kvtracker_sdk.world import ScaleSource
 from tests.tracking.sim_session import SIZE, WAIT_S, drive, make_tracker
 

@@ -16,7 +16,7 @@ from hypothesis.extra import numpy as hnp
 from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.errors import InputError
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from tests.tracking.sim_session import SIZE, drive, make_tracker
 
 H, W = SIZE

@@ -14,7 +14,7 @@ import pytest
 
 from kvtracker_sdk.errors import MapModelMismatchError
 from kvtracker_sdk.io.map_file.map_file import read_map_info
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path
 

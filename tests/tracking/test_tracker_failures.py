@@ -17,9 +17,9 @@ from kvtracker_sdk.backends.simulated_scene import GroundTruth, orbit
 from kvtracker_sdk.cache.kv_cache import KVCache
 from kvtracker_sdk.errors import MappingFailedError, TrackingFailedError
 from kvtracker_sdk.tracking.core.events import BackendFailedEvent
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.tracking.loop.states import TRANSITIONS
 from kvtracker_sdk.tracking.mapping import mapper as mapper_module
-from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import HeadSet, StateReason, TrackingState
 from tests.tracking.gated_backend import GATE_TIMEOUT_S, GatedBackend
 from tests.tracking.sim_session import SIZE, WAIT_S, Session, drive, make_tracker

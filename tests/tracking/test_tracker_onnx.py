@@ -27,7 +27,7 @@ from kvtracker_sdk.backends.openvino import OpenVinoBackend
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import BackendMismatchError
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import FrameResult, TrackingState
 from tests.conftest import OnnxExport
 from tests.helpers import dev_dependency, shared_path

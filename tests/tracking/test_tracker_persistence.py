@@ -32,7 +32,7 @@ from kvtracker_sdk.geometry.sim3 import umeyama_alignment
 from kvtracker_sdk.io.files.trajectory import read_tum
 from kvtracker_sdk.io.map_file import map_file
 from kvtracker_sdk.io.map_file.map_file import MapInfo, load_map, read_map_info
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import StateReason, TrackingState
 from tests.helpers import dev_dependency
 from tests.io.map_factory import map_digest

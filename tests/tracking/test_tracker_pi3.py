@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
 from tests.helpers import shared_path
 

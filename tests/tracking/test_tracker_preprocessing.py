@@ -14,8 +14,8 @@ from kvtracker_sdk.errors import MapPreprocessingError
 from kvtracker_sdk.io.map_file.map_file import load_map, read_map_info
 from kvtracker_sdk.preprocess import LEGACY_AREA_FLOOR
 from kvtracker_sdk.tracking.core import model_input
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.tracking.mapping.map_keeper import MapKeeper
-from kvtracker_sdk.tracking.tracker import Tracker
 from kvtracker_sdk.types import TrackingState
 from tests.io.map_factory import rewrite_header
 from tests.tracking.sim_session import make_tracker

@@ -15,8 +15,8 @@ from kvtracker_sdk.backends.simulated import SimulatedBackend
 from kvtracker_sdk.backends.simulated_scene import orbit
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.errors import BackendMismatchError, ConfigError
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
-from kvtracker_sdk.tracking.tracker import Tracker
 from tests.helpers import shared_path
 
 

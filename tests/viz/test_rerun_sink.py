@@ -13,7 +13,7 @@ from kvtracker_sdk.backends.simulated_scene import FOCAL_PER_WIDTH, orbit, pixel
 from kvtracker_sdk.cache.keyframe_map import Keyframe
 from kvtracker_sdk.config import TrackerConfig
 from kvtracker_sdk.errors import MissingDependencyError
-from kvtracker_sdk.tracking.tracker import Tracker
+from kvtracker_sdk.tracking.facade.tracker import Tracker
 from kvtracker_sdk.viz import rerun_sink
 from kvtracker_sdk.viz.rerun_sink import RerunSink
 

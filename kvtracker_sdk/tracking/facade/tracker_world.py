@@ -18,7 +18,7 @@ from kvtracker_sdk.tracking.world.world_alignment import WorldChange
 from kvtracker_sdk.types import Pose, TrackedPose
 
 if TYPE_CHECKING:  # pragma: no cover
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["TrackerWorld"]
 

@@ -14,7 +14,7 @@ from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.types import ObjectFrame, ObjectRegion
 
 if TYPE_CHECKING:  # pragma: no cover
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["TrackerObject", "checked_segmenter"]
 

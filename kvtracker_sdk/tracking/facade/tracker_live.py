@@ -14,7 +14,7 @@ from kvtracker_sdk.tracking.live.live_intake import LiveStats
 from kvtracker_sdk.types import FrameResult
 
 if TYPE_CHECKING:  # pragma: no cover
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["TrackerLive"]
 

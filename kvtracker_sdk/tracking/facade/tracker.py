@@ -54,6 +54,12 @@ from kvtracker_sdk.tracking.core.events import EventBus
 from kvtracker_sdk.tracking.core.frame_input import FrameInput, check_camera, check_frame
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.core.model_input import FramePreparer, family_preprocessing
+from kvtracker_sdk.tracking.facade.tracker_events import TrackerEvents
+from kvtracker_sdk.tracking.facade.tracker_export import TrackerExport
+from kvtracker_sdk.tracking.facade.tracker_live import TrackerLive
+from kvtracker_sdk.tracking.facade.tracker_object import TrackerObject, checked_segmenter
+from kvtracker_sdk.tracking.facade.tracker_renames import renamed_member
+from kvtracker_sdk.tracking.facade.tracker_world import TrackerWorld
 from kvtracker_sdk.tracking.live.live_intake import LiveIntake
 from kvtracker_sdk.tracking.loop.frame_loop import FrameLoop
 from kvtracker_sdk.tracking.loop.states import TrackingEvent
@@ -66,12 +72,6 @@ from kvtracker_sdk.tracking.object.object_region import OBJECT_NOT_FOUND_HINT, R
 from kvtracker_sdk.tracking.object.segmenter import Segmenter
 from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
 from kvtracker_sdk.tracking.persistence.tracker_maps import ConfigOverride, PathLike
-from kvtracker_sdk.tracking.tracker_events import TrackerEvents
-from kvtracker_sdk.tracking.tracker_export import TrackerExport
-from kvtracker_sdk.tracking.tracker_live import TrackerLive
-from kvtracker_sdk.tracking.tracker_object import TrackerObject, checked_segmenter
-from kvtracker_sdk.tracking.tracker_renames import renamed_member
-from kvtracker_sdk.tracking.tracker_world import TrackerWorld
 from kvtracker_sdk.types import (
     FrameResult,
     MapStatus,

@@ -14,7 +14,7 @@ from kvtracker_sdk.tracking.persistence import tracker_maps as persistence
 from kvtracker_sdk.tracking.persistence.tracker_maps import PathLike
 
 if TYPE_CHECKING:  # pragma: no cover
-    from kvtracker_sdk.tracking.tracker import Tracker
+    from kvtracker_sdk.tracking.facade.tracker import Tracker
 
 __all__ = ["TrackerExport"]
 
