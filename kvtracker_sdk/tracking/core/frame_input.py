@@ -42,12 +42,12 @@ from kvtracker_sdk.errors import (
     ImageDtypeError,
     ImageShapeError,
     InputError,
-    MaskError,
     NonFiniteImageError,
     ResolutionChangedError,
 )
 from kvtracker_sdk.geometry.camera import Camera
 from kvtracker_sdk.preprocess import BBox
+from kvtracker_sdk.tracking.core.object_masks import check_mask
 
 __all__ = [
     "FrameInput",
@@ -57,7 +57,6 @@ __all__ = [
     "check_frame",
     "check_gravity",
     "check_image",
-    "check_mask",
     "check_time_order",
     "to_rgb",
 ]
@@ -158,22 +157,6 @@ def check_time_order(timestamp: float | None, previous: float | None) -> None:
             f"timestamp {timestamp!r} is earlier than the previous frame's {previous!r}: "
             "timestamps must not go backwards within a session (reset() starts a new one)"
         )
-
-
-def check_mask(mask: Any, size: tuple[int, int]) -> np.ndarray:
-    """A bool [H, W] mask for an image of ``size`` (H, W), or MaskError."""
-    if not isinstance(mask, np.ndarray):
-        raise MaskError(f"mask must be a numpy array, got {type(mask).__name__}")
-    if mask.ndim == 3 and mask.shape[2] == 1:
-        mask = mask[..., 0]
-    if mask.shape != size:
-        raise MaskError(f"mask shape {mask.shape} does not match the image's {size}")
-    if mask.dtype != np.bool_ and not np.issubdtype(mask.dtype, np.integer):
-        raise MaskError(f"mask dtype must be bool or integer (non-zero = object), got {mask.dtype}")
-    selected = mask.astype(bool, copy=False)
-    if not selected.any():
-        raise MaskError("mask selects no pixel")
-    return selected
 
 
 def check_bbox(bbox: Any, size: tuple[int, int]) -> BBox:

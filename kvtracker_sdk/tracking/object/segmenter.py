@@ -27,7 +27,7 @@ import numpy as np
 
 from kvtracker_sdk.errors import MaskError
 from kvtracker_sdk.log import get_logger
-from kvtracker_sdk.tracking.core.frame_input import check_mask
+from kvtracker_sdk.tracking.core.object_masks import check_mask
 from kvtracker_sdk.types import ObjectRegion
 
 __all__ = ["Segmenter", "ask_segmenter"]
