@@ -90,6 +90,12 @@ def _download(repo_id: str, filename: str) -> Path:
         return Path(huggingface_hub.hf_hub_download(repo_id, filename, local_files_only=True))
     except Exception:  # not cached: fall through to the network
         pass
+    # The user said "no network" (huggingface_hub's HF_HUB_OFFLINE): not even a name lookup.
+    if huggingface_hub.constants.HF_HUB_OFFLINE:
+        raise WeightsNotFoundError(
+            f"{filename} of hub repo {repo_id!r} is not in the local cache and HF_HUB_OFFLINE is "
+            f"set. {hint}"
+        )
     # Without this check huggingface_hub retries an unreachable host for a long time before
     # failing (benchmarks/README.md#figures-behind-the-code).
     if not _hub_reachable(huggingface_hub.constants.ENDPOINT):

@@ -85,6 +85,17 @@ def temporaries(folder: Path) -> list[Path]:
     return [p for p in folder.iterdir() if p.name != "scene.kvmap"]
 
 
+def _writing(folder: Path) -> bool:
+    """A temporary file exists and has bytes in it (the file may be removed meanwhile)."""
+    for tmp in temporaries(folder):
+        try:
+            if tmp.stat().st_size > 0:
+                return True
+        except FileNotFoundError:
+            continue
+    return False
+
+
 def assert_no_stray_map(folder: Path) -> None:
     """Only the target is named like a map; the save's temporary file is hidden."""
     assert [p.name for p in folder.glob("*.kvmap")] == ["scene.kvmap"]
@@ -129,10 +140,12 @@ def test_kill_at_random_moments_leaves_old_or_new_map(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
     stages = []
     new = make_map(**BIG)  # type: ignore[arg-type]
-    # The first runs stop the child within 5 ms of its temporary file appearing (mid-write, as the
-    # 76 MB write takes longer), until one lands mid-write: on a loaded machine the parent may be
-    # descheduled past the write, which is still a valid stage, only not the one wanted here. The
-    # last run stops anywhere in the next half second (any stage; the assertions cover each).
+    # The first runs stop the child within 5 ms of its first bytes reaching the temporary file
+    # (mid-write, as the 76 MB write takes longer), until one lands mid-write: on a loaded machine
+    # the parent may be descheduled past the write, which is still a valid stage, only not the one
+    # wanted here. (Waiting for bytes, not for the file: on a busy machine the child can sit
+    # between creating the file and writing to it for longer than the window.) The last run stops
+    # anywhere in the next half second (any stage; the assertions cover each).
     windows = [0.005] * 5 + [0.5]
     for run, window in enumerate(windows):
         if window < 0.5 and "mid-write" in stages:
@@ -144,7 +157,7 @@ def test_kill_at_random_moments_leaves_old_or_new_map(tmp_path: Path) -> None:
         deadline = time.monotonic() + 60
         # Not synchronisation: polling for the child's temporary file (no event to wait on in
         # another process), then a random delay — the kill moments are what this test samples.
-        while not temporaries(folder) and child.poll() is None and time.monotonic() < deadline:
+        while not _writing(folder) and child.poll() is None and time.monotonic() < deadline:
             time.sleep(0.0002)
         time.sleep(float(rng.uniform(0.0, window)))
         os.kill(child.pid, signal.SIGSTOP)  # freeze it, then look at exactly how far it got

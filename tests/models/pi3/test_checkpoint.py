@@ -144,3 +144,17 @@ def test_fingerprint_depends_on_content_only() -> None:
     c = dict(a, x=a["x"] + 1e-3)
     assert weights_fingerprint(c) != weights_fingerprint(a)
     assert weights_fingerprint({"x": a["x"].reshape(3, 2), "y": a["y"]}) != weights_fingerprint(a)
+
+
+def test_offline_mode_asks_no_name_lookup(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """HF_HUB_OFFLINE set: the error comes without resolving the hub's name (no DNS query)."""
+    huggingface_hub = pytest.importorskip("huggingface_hub")
+    import socket
+
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_CACHE", str(tmp_path / "hf" / "hub"))
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+    looked_up: list[object] = []
+    monkeypatch.setattr(socket, "getaddrinfo", lambda *args, **kwargs: looked_up.append(args))
+    with pytest.raises(WeightsNotFoundError, match="HF_HUB_OFFLINE is set"):
+        load_pi3("yyfz233/Pi3")
+    assert looked_up == []
