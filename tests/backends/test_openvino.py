@@ -32,7 +32,7 @@ from kvtracker_sdk.errors import ConfigError, MissingDependencyError, ModelError
 from kvtracker_sdk.geometry.se3 import invert_rigid
 from kvtracker_sdk.types import HeadSet
 from tests.conftest import OnnxExport
-from tests.helpers import dev_dependency, shared_path
+from tests.helpers import dev_dependency, openvino_bf16_or_skip, shared_path
 
 MODELS = {"pi3": "pi3-custom", "da3": "da3-custom"}
 
@@ -190,6 +190,7 @@ def test_bfloat16_hint_keeps_a_float32_cache(onnx_exports: Callable[[str], OnnxE
     """DA3 (the CPU model; Pi3 runs bf16 in ``test_openvino_network.py``): a whole bf16 pass,
     mapping and tracking, against the golden fp32 query."""
     dev_dependency("openvino")
+    openvino_bf16_or_skip()
     from kvtracker_sdk.backends.openvino_core import shared_core
 
     export, case = onnx_exports("da3"), golden("da3")

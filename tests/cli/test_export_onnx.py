@@ -22,7 +22,7 @@ from kvtracker_sdk.cli.failures import ExitCode
 from kvtracker_sdk.errors import ConfigError
 from tests.cli.invoke import invoke
 from tests.conftest import OnnxExport
-from tests.helpers import dev_dependency
+from tests.helpers import dev_dependency, openvino_bf16_or_skip
 from tests.models.da3.factories import tiny_config as tiny_da3_config
 from tests.models.pi3.factories import tiny_config
 
@@ -129,6 +129,7 @@ def test_track_with_the_openvino_backend(
     onnx_exports: Callable[[str], OnnxExport], tmp_path: Path
 ) -> None:
     dev_dependency("openvino")
+    openvino_bf16_or_skip()
     out = onnx_exports("da3").folder
     options = ("--backend", "openvino", "--weights", out, "--dtype", "bfloat16", "--threads", "1")
     assert len(track_four_frames(tmp_path, *options)) == 4  # a pose per frame
