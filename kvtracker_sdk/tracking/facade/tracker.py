@@ -51,7 +51,7 @@ from kvtracker_sdk.io.map_file.map_file import MapInfo
 from kvtracker_sdk.log import get_logger
 from kvtracker_sdk.preprocess.undistort import Undistorter
 from kvtracker_sdk.tracking.core.events import EventBus
-from kvtracker_sdk.tracking.core.frame_input import FrameInput, check_camera, check_frame
+from kvtracker_sdk.tracking.core.frame_input import check_camera, check_frame
 from kvtracker_sdk.tracking.core.intrinsics import FrameIntrinsics
 from kvtracker_sdk.tracking.core.model_input import FramePreparer, family_preprocessing
 from kvtracker_sdk.tracking.facade.tracker_events import TrackerEvents
@@ -459,21 +459,25 @@ class Tracker:
         """
         start = time.perf_counter()
         with self._call():
-            frame = check_frame(
-                image, min_side=self._preparer.patch_size, color=color, timestamp=timestamp,
-                mask=mask, bbox=bbox, camera=self._camera if camera is None else camera,
-                depth=depth, depth_scale=depth_scale, gravity=gravity,
-                session_size=self._input_size, previous_timestamp=self._last_timestamp)
-            result = self._track(frame, start)
+            result = self._track(
+                image, start, timestamp=timestamp, mask=mask, bbox=bbox, camera=camera,
+                color=color, depth=depth, depth_scale=depth_scale, gravity=gravity)
         _log.debug("frame", frame_index=result.frame_index, state=result.state.value,
                    pose_valid=result.pose_valid, confidence=result.confidence,
                    **{f"{k}_ms": round(v, 3) for k, v in result.timings_ms.items()})
         return result
 
-    def _track(self, frame: FrameInput, start: float) -> FrameResult:
-        """Under the lock: a checked frame through its mode's region (before the step), the
-        model's input, the frame loop's step and the mode's observation (after it), to its result.
-        ``start``: when ``push_frame`` was called."""
+    def _track(
+        self, image: Any, start: float, *, camera: Camera | None, **pushed: Any
+    ) -> FrameResult:
+        """Under the lock: everything pushed with the frame checked once (``check_frame``: a
+        typed InputError before anything changes), then the frame through its mode's region
+        (before the step), the model's input, the frame loop's step and the mode's observation
+        (after it), to its result. ``start``: when ``push_frame`` was called."""
+        frame = check_frame(
+            image, min_side=self._preparer.patch_size,
+            camera=self._camera if camera is None else camera,
+            session_size=self._input_size, previous_timestamp=self._last_timestamp, **pushed)
         index, kf_map = self._frames, self._keeper.map
         regions_in = self._mode.before_step(frame, index, kf_map, start=time.perf_counter())
         prepared = self._preparer.to_model(
