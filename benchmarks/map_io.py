@@ -240,7 +240,7 @@ def _code() -> dict[str, str]:
                                 capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         commit = "unknown (not a git checkout)"
-    return {"package": str(folder), "commit": commit}
+    return {"package": folder.name, "commit": commit}  # no machine paths in committed results
 
 
 def _cpu() -> str:
