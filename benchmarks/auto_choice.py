@@ -12,7 +12,10 @@ them), in one process:
    SDPA in every global layer, under ``torch.autocast(bfloat16)``: ``benchmarks/runtimes.py``'s
    ``official_code``; and its fp32 form) on 1 thread and on every core are timed in the same
    interleaved rounds (order rotated per round), ``--rounds`` steps each; a path's time is its
-   median wall time per step.
+   median wall time per step. The official step does the work the official forward does on
+   every call (``_official_step``: Pi3's three heads, DA3's always-on ray branch);
+   ``official-sdkheads-bf16`` is the same kernels on only the heads the SDK computes, so the
+   tables show how much of a speed-up is fewer outputs and how much faster kernels.
 
 Reported per point: ``auto``'s pick against the fastest fixed choice whose pose deviation is
 within torch bf16's (the rule ``auto`` applies; the issue wants within 5 %) and against the
@@ -97,15 +100,26 @@ class Point:
                             threads=candidate.threads)  # fmt: skip
 
 
-def _official_step(model: Any, cache: Any, frame: np.ndarray, dtype: torch.dtype,
-                   threads: int) -> Callable[[], object]:  # fmt: skip
+def _official_step(model: Any, cache: Any, frame: np.ndarray, dtype: torch.dtype, threads: int,
+                   *, outputs: str = "official") -> Callable[[], object]:  # fmt: skip
+    """The official cached step (``official_code``'s kernels and autocast over fp32 weights).
+
+    ``outputs="official"``: the work the official forward does on every call, whatever the caller
+    reads: Pi3 runs its point, confidence and camera heads; DA3 runs its DualDPT head with the
+    always-on auxiliary ray branch (the official ``DepthAnything3`` drops the rays afterwards when
+    it has a camera decoder) and its camera decoder. ``outputs="sdk-heads"``: only the heads the
+    tracker reads (``HEADS``), what the SDK computes: the official kernels on the SDK's work.
+    """
     family = family_of(model)
     frames = torch.from_numpy(frame[None]).permute(0, 3, 1, 2).float().div(255.0)
+    full = outputs == "official"
 
     def step() -> object:
         torch.set_num_threads(threads)
         with torch.no_grad(), official_code(dtype):
-            return family.track(model, frames, cache, HEADS).poses[0]
+            if full and family.name == "da3":
+                return model.forward_track(frames, cache, heads=HeadSet.ALL, with_rays=True)
+            return family.track(model, frames, cache, HeadSet.ALL if full else HEADS).poses[0]
 
     return step
 
@@ -148,6 +162,8 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
                                                             torch.bfloat16, threads)  # fmt: skip
         steps[f"official-fp32-t{threads}"] = _official_step(point.fp32, cache32, frame,
                                                             torch.float32, threads)  # fmt: skip
+        steps[f"official-sdkheads-bf16-t{threads}"] = _official_step(
+            point.fp32, cache16, frame, torch.bfloat16, threads, outputs="sdk-heads")
     for step in steps.values():  # first calls (static compiles) untimed
         step()
     samples: dict[str, list[float]] = {name: [] for name in steps}
