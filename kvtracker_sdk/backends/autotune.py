@@ -23,18 +23,20 @@ How (the same definitions as ``benchmarks/runtimes.py``):
    runs). When all backends would not fit in half the memory available (large models), the
    runtimes are timed one after the other instead, each loaded, timed and closed before the next.
 4. Racing: with a few rounds of many candidates, a median taken at different moments of a
-   changing load is noise. So the eligible candidates (step 5) whose screening median is within
-   ``CONTENDER_MARGIN`` of the best one, the contenders, are timed again for up to
-   ``race_seconds`` in short rounds of only them, back to back under the same load, order
-   rotated. Each round gives every contender a paired ratio: its step time over the round's
-   fastest. Load that changes between rounds cancels in the ratio; the contender with the lowest
-   median ratio wins. One whose median ratio exceeds ``DROP_RATIO`` after ``DROP_AFTER_ROUNDS``
-   rounds is dropped, so that the others get more rounds. Contenders of runtimes timed one after
-   the other are raced only when their backends fit in memory together (reloaded); else the
-   screening medians decide. A candidate's row reports its median over screening and racing.
+   changing load is noise. So the eligible candidates (step 5) whose screening median, or
+   fastest screening step, is within ``CONTENDER_MARGIN`` of the best one's, the contenders,
+   are timed again for up to ``race_seconds`` in short rounds of only them, back to back under
+   the same load, order rotated, each on the round's query frame. Each round gives every
+   contender a paired ratio: its step time over the round's fastest. Load that changes between
+   rounds cancels in the ratio; the contender with the lowest median ratio wins. While more
+   than two race, one whose median ratio exceeds ``DROP_RATIO`` after ``DROP_AFTER_ROUNDS``
+   rounds is dropped, so that the others get more rounds. Contenders of runtimes timed one
+   after the other are raced only when their backends fit in memory together (loaded again);
+   else the screening medians decide. A row reports its median over screening and racing.
 5. Choice: among the candidates whose deviation stays within the torch bf16 candidate's (the
    precision the project's defaults accept; fp32 candidates are within it by construction), the
-   race's winner, or the fastest screening median when only one is a contender.
+   race's winner; when none raced (one contender, no racing budget, not loadable together), the
+   fastest screening median.
 
 Total time: each timing phase stops at the first round that ends after its budget, so the
 timing takes at most ``seconds + race_seconds`` plus one round of each phase (more only when
@@ -89,7 +91,7 @@ REFERENCE_DTYPE, BOUND_DTYPE = "float32", "bfloat16"
 # Racing (module docstring, step 4). The margin is wide: under load a few screening steps can
 # misorder candidates by far more than their true difference.
 CONTENDER_MARGIN = 0.25  # raced: eligible screening medians within this fraction of the best
-DROP_RATIO = 1.10  # a contender whose median paired ratio exceeds this ...
+DROP_RATIO = 1.10  # while more than two race, one whose median paired ratio exceeds this ...
 DROP_AFTER_ROUNDS = 5  # ... after this many racing rounds stops being timed
 MAX_ROUNDS = 200  # per timing phase: bounds the rounds of very fast steps
 
@@ -177,8 +179,8 @@ class CandidateResult:
 @dataclass(frozen=True)
 class TuneResult:
     """The choice and every candidate's measurement; ``reason`` says why in one line.
-    ``extra["race"]``: the contenders, rounds raced and each contender's median paired ratio
-    (None when not raced) and when it was dropped; ``extra["cpu_median_s"]``: per candidate."""
+    ``extra["race"]``: the contenders, rounds raced, each contender's paired ratios and their
+    median (None when not raced), when one was dropped and why none raced; ``extra["cpu_median_s"]``: per candidate."""
 
     chosen: Candidate
     results: tuple[CandidateResult, ...]
@@ -553,14 +555,19 @@ def _deviation_bound(candidates: Sequence[Candidate], measured: _Measurements) -
 def _contenders(
     candidates: Sequence[Candidate], measured: _Measurements, bound: float
 ) -> list[Candidate]:
-    """The eligible candidates whose screening median is within ``CONTENDER_MARGIN`` of the
-    best eligible one's (in ``candidates``' order)."""
-    medians = {c: statistics.median(measured.samples[c]) for c in candidates
-               if _eligible(c, measured, bound)}  # fmt: skip
-    if not medians:
+    """The eligible candidates whose screening median, or fastest screening step, is within
+    ``CONTENDER_MARGIN`` of the best eligible one's (in ``candidates``' order)."""
+    eligible = [c for c in candidates if _eligible(c, measured, bound)]
+    if not eligible:
         raise BackendError("tuning failed: no candidate within the torch bf16 deviation ran")
-    best = min(medians.values())
-    return [c for c, median in medians.items() if median <= best * (1.0 + CONTENDER_MARGIN)]
+    medians = {c: statistics.median(measured.samples[c]) for c in eligible}
+    # Other load only ever slows a step, so a candidate's fastest step is its least disturbed:
+    # one whose few steps mostly fell into busy moments still gets into the race by it.
+    fastest = {c: min(measured.samples[c]) for c in eligible}
+    within = 1.0 + CONTENDER_MARGIN
+    best_median, best_fastest = min(medians.values()), min(fastest.values())
+    return [c for c in eligible
+            if medians[c] <= best_median * within or fastest[c] <= best_fastest * within]  # fmt: skip
 
 
 def _race(
@@ -600,6 +607,9 @@ def _race(
             for candidate in members:  # untimed: first-call work again
                 _step(live, candidate, timing.frames[0], timing.heads)
             entrants += [(live, c) for c in members]
+        if len(entrants) < 2:
+            race.not_raced_why = "the contenders' backends could not be loaded again"
+            return
     _race_rounds(entrants, race, timing, measured, seconds)
 
 
@@ -612,7 +622,7 @@ def _race_rounds(
 ) -> None:
     """Rounds of the ``entrants`` still in the race (order rotated, every one on the round's
     frame), each giving every entrant its paired ratio, until ``seconds`` have passed or one is
-    left; after ``DROP_AFTER_ROUNDS``, one whose median ratio exceeds ``DROP_RATIO`` leaves."""
+    left; from ``DROP_AFTER_ROUNDS`` on, the clearly slower leave (``_drop_the_clearly_slower``)."""
     active = list(entrants)
     start = timing.clock.wall()
     while len(active) > 1 and race.rounds < MAX_ROUNDS and timing.clock.wall() - start < seconds:
@@ -625,12 +635,19 @@ def _race_rounds(
             race.ratios.setdefault(candidate, []).append(wall / fastest)
         race.rounds += 1
         if race.rounds >= DROP_AFTER_ROUNDS:
-            medians = {c: statistics.median(race.ratios[c]) for _, c in active}
-            leader = min(medians, key=medians.__getitem__)
-            for entry in list(active):
-                if entry[1] != leader and medians[entry[1]] > DROP_RATIO:
-                    active.remove(entry)
-                    race.dropped_after[entry[1]] = race.rounds
+            _drop_the_clearly_slower(active, race)
+
+
+def _drop_the_clearly_slower(active: list[tuple[_Live, Candidate]], race: _Race) -> None:
+    """Remove from ``active`` the slowest ones whose median ratio exceeds ``DROP_RATIO``, while
+    more than two are left: dropping is for giving the others more rounds, and the last two
+    race to the end (the lowest median ratio is never dropped)."""
+    medians = {c: statistics.median(race.ratios[c]) for _, c in active}
+    for candidate in sorted(medians, key=medians.__getitem__, reverse=True):
+        if len(active) <= 2 or medians[candidate] <= DROP_RATIO:
+            return
+        active[:] = [entry for entry in active if entry[1] != candidate]
+        race.dropped_after[candidate] = race.rounds
 
 
 # ---------------------------------------------------------------------------- choosing
@@ -690,6 +707,7 @@ def _choose(
                 "margin": CONTENDER_MARGIN,
                 "rounds": race.rounds,
                 "median_ratio": {c.name: race.median_ratio(c) for c in race.contenders},
+                "ratios": {c.name: race.ratios.get(c, []) for c in race.contenders},
                 "dropped_after": {c.name: n for c, n in race.dropped_after.items()},
                 "not_raced": race.not_raced_why,
             },
@@ -718,7 +736,7 @@ def _reason(
                            if c != best.candidate and race.median_ratio(c) is not None)  # fmt: skip
         how = (
             f"chosen by {race.rounds} paired rounds among {len(race.contenders)} contenders "
-            f"(screening median within {CONTENDER_MARGIN:.0%} of the best): median "
+            f"(screening median or fastest step within {CONTENDER_MARGIN:.0%} of the best): median "
             f"{ratio:.2f}x the round's fastest vs {others or 'none raced'}; median step {speed}"
         )
     else:
