@@ -5,7 +5,8 @@
     kvtracker track video.mp4 --weights da3-small --resolution 224 --max-keyframes 32  # uses it
 
 The candidates (``backends/autotune.py``) are timed on the weights, at the resolution and map
-size given, for a few seconds; the fastest whose pose deviation from fp32 stays within the torch
+size given, for a few seconds (the closest raced in paired rounds for up to as long again); the
+fastest whose pose deviation from fp32 stays within the torch
 bf16 deviation is kept per machine and model (``io/files/tune_cache.py``). ``kvtracker track``'s
 default ``--backend auto`` then uses that choice (``auto_choice``) unless ``--dtype`` or
 ``--threads`` is given; without a kept choice it runs PyTorch as before and says how to tune.
@@ -80,7 +81,7 @@ def tune(
     runtime: Annotated[list[str] | None, typer.Option(
         help="Runtimes to try (torch, onnx, openvino; repeat the option). [default: installed]")
     ] = None,
-    seconds: Annotated[float, typer.Option(min=0.1, max=3600, callback=finite, help="Timing budget (the map pass comes on top).")] = 5.0,
+    seconds: Annotated[float, typer.Option(min=0.1, max=3600, callback=finite, help="Timing budget; racing the closest candidates may take as long again (the map pass comes on top).")] = 5.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON. [default: off]")] = False,
 ) -> None:
     """Time the runtimes, dtypes and thread counts on these weights here; keep the fastest."""

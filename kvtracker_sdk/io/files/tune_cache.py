@@ -122,9 +122,11 @@ def remember_choice(key: dict[str, Any], result: TuneResult, folder: Path | None
         "interleaved": result.interleaved,
         "load_average": result.load_average,
         "deviation_bound": result.deviation_bound,
+        "race": result.extra.get("race"),
         "candidates": [
             {"name": r.candidate.name, "median_s": r.median_s, "best_s": r.best_s,
-             "steps": r.steps, "deviation": r.deviation, "eligible": r.eligible, "note": r.note}
+             "cpu_median_s": r.cpu_median_s, "steps": r.steps, "deviation": r.deviation,
+             "eligible": r.eligible, "note": r.note}
             for r in result.results
         ],
     }  # fmt: skip
