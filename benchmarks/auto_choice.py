@@ -199,7 +199,8 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
         "tuner": {"chosen": tuned.chosen.name, "reason": tuned.reason,
                   "interleaved": tuned.interleaved, "seconds": tuned.seconds,
                   "deviation_bound": tuned.deviation_bound, "load_average_start": load_before_tune,
-                  "table": tuned.table(),
+                  "table": tuned.table(), "race": tuned.extra.get("race"),
+                  "cpu_median_s": tuned.extra.get("cpu_median_s"),
                   "candidates": {r.candidate.name: {"median_s": r.median_s, "deviation":
                                  r.deviation, "eligible": r.eligible, "note": r.note}
                                  for r in tuned.results}},

@@ -116,9 +116,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         times: dict[str, list[float]] = {"official": [], "sdk": []}
         official(), sdk()  # untimed first calls
         for _ in range(args.repeats):  # interleaved: a load change hits both
-            for name, step in (("official", official), ("sdk", sdk)):
+            for name, timed_step in (("official", official), ("sdk", sdk)):
                 start = time.perf_counter()
-                step()
+                timed_step()
                 times[name].append(time.perf_counter() - start)
         floor = total / rate["best_flops_per_s"]
         official_s, sdk_s = statistics.median(times["official"]), statistics.median(times["sdk"])

@@ -87,6 +87,9 @@ _log = get_logger(__name__)
 
 RUNTIMES = ("torch", "onnx", "openvino")
 DTYPES = ("float32", "bfloat16")
+# OpenVINO's per-graph precision (``openvino_runtime.MIXED``): bf16 encoder and dense heads, fp32
+# decoders and camera head; a dtype of OpenVINO candidates only
+MIXED = "mixed"
 REFERENCE_DTYPE, BOUND_DTYPE = "float32", "bfloat16"
 # Racing (module docstring, step 4). The margin is wide: under load a few screening steps can
 # misorder candidates by far more than their true difference.
@@ -108,15 +111,17 @@ class TuneClock:
 @dataclass(frozen=True)
 class Candidate:
     """One way to run the tracking step: ``runtime`` (torch, onnx, openvino), ``dtype``
-    (float32, bfloat16: torch's compute dtype, OpenVINO's precision hint) and CPU ``threads``
-    (None: the runtime chooses, as ONNX Runtime does)."""
+    (float32, bfloat16: torch's compute dtype, OpenVINO's precision hint; for OpenVINO also
+    ``MIXED``, its per-graph precision) and CPU ``threads`` (None: the runtime chooses, as ONNX
+    Runtime does)."""
 
     runtime: str
     dtype: str
     threads: int | None
 
     def __post_init__(self) -> None:
-        if self.runtime not in RUNTIMES or self.dtype not in DTYPES:
+        known = (*DTYPES, MIXED) if self.runtime == "openvino" else DTYPES
+        if self.runtime not in RUNTIMES or self.dtype not in known:
             raise ConfigError(f"unknown candidate {self.runtime!r} {self.dtype!r}")
         if self.threads is not None and (isinstance(self.threads, bool) or self.threads < 1):
             raise ConfigError(f"candidate threads must be >= 1 or None, got {self.threads!r}")
@@ -124,7 +129,8 @@ class Candidate:
     @property
     def name(self) -> str:
         threads = "auto" if self.threads is None else str(self.threads)
-        return f"{self.runtime}-{'bf16' if self.dtype == 'bfloat16' else 'fp32'}-t{threads}"
+        short = {"bfloat16": "bf16", "float32": "fp32"}.get(self.dtype, self.dtype)
+        return f"{self.runtime}-{short}-t{threads}"
 
     @property
     def backend_key(self) -> tuple[str, str, int | None]:
@@ -180,7 +186,8 @@ class CandidateResult:
 class TuneResult:
     """The choice and every candidate's measurement; ``reason`` says why in one line.
     ``extra["race"]``: the contenders, rounds raced, each contender's paired ratios and their
-    median (None when not raced), when one was dropped and why none raced; ``extra["cpu_median_s"]``: per candidate."""
+    median (None when not raced), when one was dropped and why none raced;
+    ``extra["cpu_median_s"]``: per candidate."""
 
     chosen: Candidate
     results: tuple[CandidateResult, ...]
@@ -208,15 +215,16 @@ class TuneResult:
 
 
 def default_candidates(runtimes: Iterable[str], cores: int) -> list[Candidate]:
-    """Each runtime in fp32 and bf16 (ONNX: fp32, its own threads) on 1 thread and on every
-    usable core (and the powers of two between, on larger machines)."""
+    """Each runtime in fp32 and bf16 (OpenVINO also ``MIXED``; ONNX: fp32, its own threads) on
+    1 thread and on every usable core (and the powers of two between, on larger machines)."""
     counts = sorted({1, cores, *(2**i for i in range(1, 8) if 2**i < cores)})
     candidates: list[Candidate] = []
     for runtime in runtimes:
         if runtime == "onnx":
             candidates.append(Candidate("onnx", "float32", None))
             continue
-        candidates += [Candidate(runtime, d, n) for d in DTYPES for n in counts]
+        dtypes = (*DTYPES, MIXED) if runtime == "openvino" else DTYPES
+        candidates += [Candidate(runtime, d, n) for d in dtypes for n in counts]
     return candidates
 
 

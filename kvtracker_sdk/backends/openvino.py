@@ -18,8 +18,10 @@ between torch, onnx and openvino live and maps saved by one load in the others.
 "bfloat16" is faster where the CPU has bf16 products, with a larger deviation (see
 ``openvino_runtime``) that grows with the map and depends on the CPU: on large DA3 maps its poses
 can deviate several times more than PyTorch's bf16 while "float32" is nearly as fast (figures:
-``benchmarks/README.md#figures-behind-the-code``; README, model choice).
-``kvtracker tune`` measures it on the machine at hand and keeps bf16 only within PyTorch bf16's
+``benchmarks/README.md#figures-behind-the-code``; README, model choice). "mixed" keeps the
+graphs the pose passes through (decoders, camera head) in float32 and runs the image encoder
+and the dense heads in bf16: between the two in speed, about PyTorch bf16's deviation.
+``kvtracker tune`` measures them on the machine at hand and keeps bf16 only within PyTorch bf16's
 deviation (``backends/autotune.py``). ``info.accelerations`` reports what the plugin chose: device, precision,
 threads.
 
@@ -63,7 +65,8 @@ class OpenVinoBackend(ExportBackend):
     ``folder``: an export (``kvtracker export-onnx``); its files must match the sha256 digests
     of its manifest (``ModelError`` otherwise). ``device``: "cpu" (default), "gpu[:N]" or "npu"
     where OpenVINO sees one. ``precision``: "float32" (default), "bfloat16" or "float16" (the
-    inference precision hint; the cache stays float32). ``threads``: CPU inference threads
+    inference precision hint of every graph; the cache stays float32), or "mixed" (per graph:
+    bf16 encoder and dense heads, fp32 decoders and camera head; ``openvino_runtime``). ``threads``: CPU inference threads
     (None: one per physical core). ``static_shapes``: track on graphs compiled for the
     current map's exact shapes (``openvino_static``; one compile, on the first frame after the
     map's keyframe count or resolution changes): None (default) = every tracking graph in

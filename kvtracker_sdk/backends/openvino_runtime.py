@@ -12,7 +12,13 @@ Choices, and why:
   Inputs and outputs stay float32 either way, so the cache does too: a bf16 OpenVINO backend
   shares caches and maps with every float32 backend of the same weights. The precision the
   plugin actually chose is read back from the compiled model and reported (a CPU without bf16
-  computes in f32; OpenVINO's CPU plugin computes an f16 hint in bf16).
+  computes in f32; OpenVINO's CPU plugin computes an f16 hint in bf16). The hint is the
+  plugin's whole-graph switch: every node of a bf16 graph runs bf16, the residual stream too,
+  which PyTorch's bf16 keeps in fp32 (``models/layers/precision.py``); so a bf16 OpenVINO pose
+  deviates from fp32 more than PyTorch's. "mixed" sets it per graph instead (``graph_precisions``):
+  bf16 for the image encoder and the dense heads, fp32 for the decoders, which read and make the
+  map, and for the camera head, whose output is the pose; its poses deviate about as PyTorch
+  bf16's. The tuner measures all of them (``autotune``).
 - ``PERFORMANCE_HINT=LATENCY``: one stream, one request at a time (a tracker runs one frame at a
   time); ``INFERENCE_NUM_THREADS`` = ``threads`` (None: the plugin's choice, one per physical
   core), read back and reported.
@@ -61,6 +67,10 @@ __all__ = [
 
 # SDK dtype name -> OpenVINO's inference precision hint
 PRECISIONS = {"float32": "f32", "bfloat16": "bf16", "float16": "f16"}
+MIXED = "mixed"  # per graph (graph_precisions): bf16 where the pose does not pass through
+# "mixed": the graphs kept fp32: the decoders (their K/V are the map, and every pose is read
+# through them) and the camera head (its outputs are the pose itself)
+MIXED_FP32_GRAPHS = frozenset({"decoder_map", "decoder_track", "head_camera"})
 _DEVICES = {"cpu": "CPU", "gpu": "GPU", "npu": "NPU"}
 
 
@@ -84,8 +94,21 @@ def openvino_device(device: str, available: list[str]) -> str:
     return name
 
 
+def graph_precisions(precision: str, graphs: Collection[str]) -> dict[str, str]:
+    """Each graph's precision (a key of ``PRECISIONS``) under the backend's ``precision``: the
+    same for all, or for ``MIXED`` float32 for ``MIXED_FP32_GRAPHS`` and bfloat16 for the rest.
+    ``ConfigError`` for an unknown precision."""
+    if precision == MIXED:
+        return {g: "float32" if g in MIXED_FP32_GRAPHS else "bfloat16" for g in graphs}
+    if precision not in PRECISIONS:
+        known = sorted([*PRECISIONS, MIXED])
+        raise ConfigError(f"unknown precision {precision!r}; expected one of {known}")
+    return dict.fromkeys(graphs, precision)
+
+
 def compile_config(device: str, precision: str, threads: int | None) -> dict[str, Any]:
-    """Compile properties for one tracking loop on ``device`` (see the module docstring)."""
+    """Compile properties for one tracking loop on ``device`` (see the module docstring);
+    ``precision``: a key of ``PRECISIONS`` (one graph's)."""
     if precision not in PRECISIONS:
         raise ConfigError(f"unknown precision {precision!r}; expected one of {sorted(PRECISIONS)}")
     if threads is not None and threads < 1:
@@ -109,10 +132,11 @@ def static_graphs(
     deviated more from fp32 than the dynamic decoder's (figures:
     ``benchmarks/README.md#figures-behind-the-code``). The heads are static in bf16 as the
     encoder is: the depth head has no part in the pose, and with the camera head static the
-    tuner's pose deviations stayed the same (``benchmarks/results/auto_choice.md``)."""
+    tuner's pose deviations stayed the same (``benchmarks/results/auto_choice.md``). ``MIXED``
+    as float32: every one (its decoder is fp32)."""
     tracking = {name for name in manifest.graphs if name != "decoder_map"}
     if static_shapes is None:
-        return tracking if precision == "float32" else tracking - {"decoder_track"}
+        return tracking if precision in ("float32", MIXED) else tracking - {"decoder_track"}
     if isinstance(static_shapes, bool):
         return tracking if static_shapes else set()
     unknown = sorted(set(static_shapes) - tracking)
@@ -138,7 +162,8 @@ def _signature(model: Any, known: set[str]) -> GraphSignature:
 class OpenVinoRunner(GraphRunner):
     """One OpenVINO compiled model per graph of an export; mapping and tracking passes in numpy.
 
-    ``device``: "cpu" (default), "gpu[:N]", "npu"; ``precision``: a key of ``PRECISIONS``;
+    ``device``: "cpu" (default), "gpu[:N]", "npu"; ``precision``: a key of ``PRECISIONS`` or
+    ``MIXED`` (``graph_precisions``);
     ``threads``: CPU inference threads (None: one per physical core); ``static_shapes``: track
     on graphs compiled per input shape (``openvino_static``; ``static_graphs``: None = by
     precision, True, False, or graph names).
@@ -159,7 +184,9 @@ class OpenVinoRunner(GraphRunner):
         folder = Path(folder)
         core = shared_core()
         self.device = openvino_device(device, list(core.available_devices))
-        config = compile_config(self.device, precision, threads)
+        precisions = graph_precisions(precision, manifest.graphs)
+        configs = {name: compile_config(self.device, graph_precision, threads)
+                   for name, graph_precision in precisions.items()}  # fmt: skip
         static = static_graphs(static_shapes, manifest, precision)
         try:
             models = {
@@ -175,7 +202,7 @@ class OpenVinoRunner(GraphRunner):
             static -= {name for name in static if folds_pillow_resize(models[name])}
             # static shapes: the dynamic tracking decoder is never run (a copy of its weights less)
             self._compiled = {
-                name: core.compile_model(model, self.device, config)
+                name: core.compile_model(model, self.device, configs[name])
                 for name, model in models.items()
                 if name not in static or name != "decoder_track"
             }
@@ -183,13 +210,18 @@ class OpenVinoRunner(GraphRunner):
             raise BackendError(f"OpenVINO cannot compile the graphs in {folder}: {exc}") from exc
         for name, model in models.items():
             self._check_names(name, model)
+        chosen = {name: str(compiled.get_property("INFERENCE_PRECISION_HINT").get_type_name())
+                  for name, compiled in self._compiled.items()}  # fmt: skip
+        # what the plugin chose (a CPU without bf16 computes f32): one name, or MIXED's two
+        self.precision = chosen["encoder"]
+        if precision == MIXED:
+            self.precision = f"{MIXED}({chosen['encoder']}/{chosen['decoder_map']})"
         track = self._compiled["encoder"]
-        self.precision = str(track.get_property("INFERENCE_PRECISION_HINT").get_type_name())
         cpu = self.device == "CPU"
         self.threads = int(track.get_property("INFERENCE_NUM_THREADS")) if cpu else 0
         self._requests = threading.local()  # graph name -> this thread's InferRequest
         self._models, self._compile_lock = models, threading.Lock()
-        self._compile = lambda model: core.compile_model(model, self.device, config)
+        self._compile = lambda graph, model: core.compile_model(model, self.device, configs[graph])
         self._tracking = threading.local()  # .active: this thread is in a tracking pass
         self.static: StaticGraphs | None = None
         if static:
@@ -235,7 +267,7 @@ class OpenVinoRunner(GraphRunner):
         if graph not in requests:
             with self._compile_lock:  # the dynamic tracking decoder: compiled when first needed
                 if graph not in self._compiled:
-                    self._compiled[graph] = self._compile(self._models[graph])
+                    self._compiled[graph] = self._compile(graph, self._models[graph])
             requests[graph] = self._compiled[graph].create_infer_request()
         return requests[graph]
 

@@ -92,8 +92,8 @@ class _Compiled:
 class StaticGraphs:
     """Per graph, compiled models specialised to input signatures (LRU of ``per_graph``).
 
-    ``models``: graph name -> ``openvino.Model`` (dynamic, as read); ``compile``: model ->
-    compiled model (the runner's device and properties). Thread-safe: compiles run one at a
+    ``models``: graph name -> ``openvino.Model`` (dynamic, as read); ``compile``: (graph name,
+    model) -> compiled model (the runner's device and that graph's properties). Thread-safe: compiles run one at a
     time, each thread has its own inference request per compiled model.
     """
 
@@ -131,7 +131,7 @@ class StaticGraphs:
             start = time.perf_counter()
             try:
                 model = specialise(self._ov, self._models[graph], feeds)
-                compiled = self._compile(model)
+                compiled = self._compile(graph, model)
             except Exception as exc:  # OpenVINO's own exceptions: this graph stays dynamic
                 self.unsupported.add(graph)
                 _log.warning("openvino.static_unsupported", graph=graph, error=str(exc)[:300])

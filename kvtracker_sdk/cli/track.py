@@ -52,7 +52,8 @@ def track(
     device: Annotated[str, typer.Option(
         help="cpu, cuda, cuda:1, ... (openvino: cpu, gpu, npu)")] = "cpu",
     dtype: Annotated[ComputeDtype | None, typer.Option(
-        help="Compute dtype (torch), precision hint (openvino). [default: float32, or auto's]")
+        help="Compute dtype (torch), precision (openvino; mixed: bf16 encoder, fp32 decoder "
+             "and camera head). [default: float32, or auto's]")
     ] = None,
     threads: Annotated[int | None, typer.Option(min=1, max=4096,
         help="CPU threads for inference (torch, onnx, openvino). [default: the runtime's choice]")] = None,

@@ -8,7 +8,8 @@ Each runtime is imported only when chosen: the PyTorch backend loads the checkpo
 ``.safetensors`` file, a folder holding one, or a hub id such as ``yyfz233/Pi3``); the ONNX and
 OpenVINO backends load exported graphs (``kvtracker export-onnx``) from ``weights``, or export
 a checkpoint there once. OpenVINO takes ``dtype="bfloat16"`` as its precision hint (its cache
-stays float32). ``threads``: torch's intra-op threads (process-wide), ONNX Runtime's intra-op
+stays float32), and ``dtype="mixed"``, its per-graph precision (bf16 encoder and dense heads,
+fp32 decoders and camera head; ``backends/openvino_runtime.py``), which only it has. ``threads``: torch's intra-op threads (process-wide), ONNX Runtime's intra-op
 threads, OpenVINO's inference threads; None lets each runtime choose.
 
 ``options`` are the runtime's own keyword arguments, checked against the ones it takes:
@@ -57,6 +58,7 @@ class BackendKind(str, enum.Enum):
 class ComputeDtype(str, enum.Enum):
     FLOAT32 = "float32"
     BFLOAT16 = "bfloat16"
+    MIXED = "mixed"  # OpenVINO's per-graph precision only (the module docstring)
 
 
 # the keyword arguments each runtime's constructor takes besides weights, device, dtype, threads
@@ -126,6 +128,10 @@ def open_backend(
     if kind is BackendKind.AUTO:
         raise ConfigError("backend 'auto' is resolved by `kvtracker tune`'s choice before a "
                           "backend opens: name torch, onnx or openvino here")
+    if dtype_name == ComputeDtype.MIXED.value and kind is not BackendKind.OPENVINO:
+        raise ConfigError(f"dtype 'mixed' is OpenVINO's per-graph precision; the {kind.value} "
+                          "backend takes float32 or bfloat16 (PyTorch's bf16 keeps its residual "
+                          "stream in fp32 already)")
     extra = dict(options or {})
     unknown = sorted(set(extra) - RUNTIME_OPTIONS[kind])
     if unknown:

@@ -122,6 +122,12 @@ def test_candidates_and_problems_are_checked() -> None:
     names = [c.name for c in default_candidates(["torch", "onnx"], cores=4)]
     assert names == ["torch-fp32-t1", "torch-fp32-t2", "torch-fp32-t4", "torch-bf16-t1",
                      "torch-bf16-t2", "torch-bf16-t4", "onnx-fp32-tauto"]  # fmt: skip
+    # OpenVINO's per-graph precision is a candidate of OpenVINO only
+    names = [c.name for c in default_candidates(["openvino"], cores=2)]
+    assert names == ["openvino-fp32-t1", "openvino-fp32-t2", "openvino-bf16-t1",
+                     "openvino-bf16-t2", "openvino-mixed-t1", "openvino-mixed-t2"]  # fmt: skip
+    with pytest.raises(ConfigError):
+        Candidate("torch", "mixed", 1)
     frames = synthetic_frames(3, 28, 42, seed=1)
     assert frames.shape == (3, 28, 42, 3) and frames.dtype == np.uint8
     assert np.array_equal(frames, synthetic_frames(3, 28, 42, seed=1))

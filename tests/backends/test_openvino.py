@@ -26,7 +26,11 @@ from kvtracker_sdk.backends.base import Backend, MapResult
 from kvtracker_sdk.backends.onnx import OnnxBackend
 from kvtracker_sdk.backends.onnx_manifest import WEIGHTS_NAME
 from kvtracker_sdk.backends.openvino import OpenVinoBackend
-from kvtracker_sdk.backends.openvino_runtime import static_graphs
+from kvtracker_sdk.backends.openvino_runtime import (
+    MIXED_FP32_GRAPHS,
+    graph_precisions,
+    static_graphs,
+)
 from kvtracker_sdk.backends.torch_backend import TorchBackend
 from kvtracker_sdk.errors import ConfigError, MissingDependencyError, ModelError, StateError
 from kvtracker_sdk.geometry.se3 import invert_rigid
@@ -142,6 +146,7 @@ def test_tracking_compiles_each_map_shape_once(runtimes: Runtimes) -> None:
 def test_static_shapes_choose_the_tracking_graphs(runtimes: Runtimes) -> None:
     manifest, every = runtimes.openvino.manifest, {"encoder", "decoder_track", "head_camera"}
     assert static_graphs(None, manifest, "float32") >= every  # fp32: every tracking graph
+    assert static_graphs(None, manifest, "mixed") == static_graphs(None, manifest, "float32")
     # bf16: every tracking graph but the decoder (see static_graphs)
     every_but_decoder = static_graphs(True, manifest, "bfloat16") - {"decoder_track"}
     assert static_graphs(None, manifest, "bfloat16") == every_but_decoder
@@ -210,6 +215,42 @@ def test_bfloat16_hint_keeps_a_float32_cache(onnx_exports: Callable[[str], OnnxE
     fast.close()  # idempotent
     with pytest.raises(StateError, match="this OpenVinoBackend is closed"):
         fast.track(case.images[3], mapped.cache)
+
+
+def test_mixed_precision_keeps_the_graphs_the_pose_passes_float32(
+    onnx_exports: Callable[[str], OnnxExport],
+) -> None:
+    """"mixed": bf16 encoder and dense heads, fp32 decoders and camera head, as the plugin
+    reports them back; a map and a query against the golden fp32 query pose."""
+    dev_dependency("openvino")
+    openvino_bf16_or_skip()
+    from kvtracker_sdk.backends.openvino_core import shared_core
+
+    graphs = ("encoder", "decoder_map", "decoder_track", "head_camera", "head_depth")
+    assert graph_precisions("mixed", graphs) == {
+        "encoder": "bfloat16", "decoder_map": "float32", "decoder_track": "float32",
+        "head_camera": "float32", "head_depth": "bfloat16"}  # fmt: skip
+    assert set(graph_precisions("bfloat16", graphs).values()) == {"bfloat16"}
+    assert set(graphs) >= MIXED_FP32_GRAPHS
+    with pytest.raises(ConfigError, match="mixed"):  # the message lists what is known
+        graph_precisions("int8", graphs)
+    export, case = onnx_exports("da3"), golden("da3")
+    mixed = OpenVinoBackend(export.folder, precision="mixed", threads=1)
+    has_bf16 = "BF16" in shared_core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+    assert f"precision:mixed({'bf16' if has_bf16 else 'f32'}/f32)" in mixed.info.accelerations
+    mapped = mixed.map(case.images[:3])
+    assert str(mapped.cache.dtype) == "torch.float32"
+    deviation = np.abs(mixed.track(case.images[3], mapped.cache).pose - case.query_pose).max()
+    assert deviation < 0.05  # bf16 encoder on random weights (bf16's bound above)
+    mixed.close()
+
+
+def test_mixed_is_refused_outside_openvino(tmp_path: Path) -> None:
+    from kvtracker_sdk.runs.backends import open_backend
+
+    for kind in ("torch", "onnx"):
+        with pytest.raises(ConfigError, match="OpenVINO's per-graph precision"):
+            open_backend(kind, tmp_path / "absent.safetensors", dtype="mixed")
 
 
 def test_requests_are_per_thread(runtimes: Runtimes) -> None:
