@@ -19,8 +19,8 @@ them), in one process:
 
 Reported per point: ``auto``'s pick against the fastest fixed choice whose pose deviation is
 within torch bf16's (the rule ``auto`` applies; the issue wants within 5 %) and against the
-fastest of all, and ``auto``'s pick and the fastest path against the faster official thread
-count (official-bf16, as the official code runs). ``--render FILE.json`` re-writes the tables. The map is the tuner's: synthetic frames mapped by the fp32 backend (its
+fastest of all, and ``auto``'s pick and the fastest path against the fastest official step
+(``fastest_official``: bf16 or fp32, either thread count). ``--render FILE.json`` re-writes the tables. The map is the tuner's: synthetic frames mapped by the fp32 backend (its
 cache rounded to bf16 for the bf16 paths); the heads are the tracker's default (camera +
 confidence). Run from the repository root with the passive OpenMP policy (this script imports
 torch before ``kvtracker_sdk`` could set it)::
@@ -188,7 +188,7 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
     best_cpu = min((c.name for c in candidates if c.threads == 1), key=median_cpu.__getitem__)
     fixed = {c.name: median[c.name] for c in candidates}
     best_fixed = min(fixed, key=fixed.__getitem__)
-    official = min((n for n in median if n.startswith("official-bf16")), key=median.__getitem__)
+    official = fastest_official(median)
     best_path = min(fixed, key=fixed.__getitem__)
     for backend in backends.values():
         backend.close()
@@ -216,6 +216,13 @@ def run_point(point: Point, args: argparse.Namespace) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def fastest_official(median: dict[str, float]) -> str:
+    """The fastest official cached step as the official forward runs it (bf16 or fp32, any
+    thread count; not the SDK-heads form): the reference every speed-up is taken against."""
+    official = [n for n in median if n.startswith("official-") and "sdkheads" not in n]
+    return min(official, key=median.__getitem__)
+
+
 def best_eligible(result: dict[str, Any]) -> str:
     """The fastest fixed choice (in the timed grid) that the tuner's precision rule admits."""
     candidates = result["tuner"]["candidates"]
@@ -225,6 +232,9 @@ def best_eligible(result: dict[str, Any]) -> str:
 
 def point_table(result: dict[str, Any]) -> str:
     median, chosen = result["median_s"], result["tuner"]["chosen"]
+    # recomputed from the medians: a saved JSON renders with the current reference rule
+    result["official"] = fastest_official(median)
+    result["best_path_speedup_vs_official"] = median[result["official"]] / median[result["best_path"]]
     official = median[result["official"]]
     eligible = best_eligible(result)
     lines = [
@@ -234,10 +244,11 @@ def point_table(result: dict[str, Any]) -> str:
         f"auto (tuner) chose **{chosen}**: **{median[chosen] / median[eligible]:.3f}×** the "
         f"fastest fixed choice within torch bf16's pose deviation ({eligible}), "
         f"{result['auto_over_best_fixed']:.3f}× the fastest of all ({result['best_fixed']}); "
-        f"auto = **{official / median[chosen]:.2f}×** and the fastest path "
+        f"auto = **{official / median[chosen]:.2f}×**, the fastest path within the deviation rule "
+        f"({eligible}) **{official / median[eligible]:.2f}×** and the fastest of all "
         f"({result['best_path']}) {result['best_path_speedup_vs_official']:.2f}× the official "
-        f"cached step ({result['official']})", "",
-        "| path | median step (s) | vs official bf16 | CPU per step (s) | vs official bf16 t1 (CPU) "
+        f"cached step at its fastest ({result['official']})", "",
+        "| path | median step (s) | vs official | CPU per step (s) | vs official bf16 t1 (CPU) "
         "| pose dev. (tuner) | |",
         "|---|---:|---:|---:|---:|---:|---|",
     ]  # fmt: skip
@@ -276,7 +287,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     if args.render:
         saved: dict[str, Any] = json.loads(args.render.read_text())
-        write_tables(saved, args.render.with_suffix(".md"))
+        write_tables(saved, args.render.with_suffix(".md"))  # recomputes each point's reference
+        args.render.write_text(json.dumps(saved, indent=1) + "\n")
         return saved
     result: dict[str, Any] = {
         "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
