@@ -16,6 +16,10 @@ from typing import Any
 
 import pytest
 
+# The suite imports the SDK before torch, as an app should: it sets OMP_WAIT_POLICY=PASSIVE
+# before torch's OpenMP loads (tests/test_threads.py relies on it), whichever test module is
+# collected first and whatever it imports.
+import kvtracker_sdk  # noqa: F401  isort: skip
 from tests.helpers import dev_dependency, shared_path
 
 

@@ -353,16 +353,12 @@ def tune(
     ``time.process_time``). A candidate whose backend cannot be built or fails is reported and
     skipped; ``BackendError`` when the fp32 or bf16 torch reference fails.
     """
-    race_seconds = seconds if race_seconds is None else race_seconds
-    if not (seconds >= 0 and race_seconds >= 0):  # also rejects NaN
-        raise ConfigError(f"tune budgets must be >= 0 s, got {seconds!r} and {race_seconds!r}")
+    race_seconds = _race_budget(seconds, race_seconds)
     clock = clock or TuneClock()
     began, load_start = clock.wall(), _load()
     reference_candidate = _reference_candidate(candidates)
     threads_before = torch.get_num_threads()
-    groups: dict[tuple[str, str, int | None], list[Candidate]] = {}
-    for candidate in candidates:
-        groups.setdefault(candidate.backend_key, []).append(candidate)
+    groups = _backend_groups(candidates)
     reference = open_candidate(reference_candidate)
     height, width = problem.model_size(reference.info.family, reference.info.patch_size)
     if images is None:
@@ -391,6 +387,24 @@ def tune(
                      clock.wall() - began)  # fmt: skip
     result.extra.update(model_size=(height, width), fingerprint=reference.info.weights_fingerprint)
     return result
+
+
+def _race_budget(seconds: float, race_seconds: float | None) -> float:
+    """The racing budget (None: ``seconds`` again); ``ConfigError`` for a negative or NaN one."""
+    race_seconds = seconds if race_seconds is None else race_seconds
+    if not (seconds >= 0 and race_seconds >= 0):  # also rejects NaN
+        raise ConfigError(f"tune budgets must be >= 0 s, got {seconds!r} and {race_seconds!r}")
+    return race_seconds
+
+
+def _backend_groups(
+    candidates: Sequence[Candidate],
+) -> dict[tuple[str, str, int | None], list[Candidate]]:
+    """The candidates by the backend they share (``Candidate.backend_key``), in order."""
+    groups: dict[tuple[str, str, int | None], list[Candidate]] = {}
+    for candidate in candidates:
+        groups.setdefault(candidate.backend_key, []).append(candidate)
+    return groups
 
 
 @dataclass(frozen=True)
@@ -543,6 +557,18 @@ class _Race:
     def median_ratio(self, candidate: Candidate) -> float | None:
         ratios = self.ratios.get(candidate)
         return statistics.median(ratios) if ratios else None
+
+    def record(self) -> dict[str, Any]:
+        """What ``TuneResult.extra["race"]`` holds (JSON-ready: candidates by name)."""
+        return {
+            "contenders": [c.name for c in self.contenders],
+            "margin": CONTENDER_MARGIN,
+            "rounds": self.rounds,
+            "median_ratio": {c.name: self.median_ratio(c) for c in self.contenders},
+            "ratios": {c.name: self.ratios.get(c, []) for c in self.contenders},
+            "dropped_after": {c.name: n for c, n in self.dropped_after.items()},
+            "not_raced": self.not_raced_why,
+        }
 
 
 def _eligible(candidate: Candidate, measured: _Measurements, bound: float) -> bool:
@@ -709,18 +735,8 @@ def _choose(
         interleaved=interleaved,
         load_average=None if load_start is None else (load_start, _load() or 0.0),
         seconds=seconds,
-        extra={
-            "race": {
-                "contenders": [c.name for c in race.contenders],
-                "margin": CONTENDER_MARGIN,
-                "rounds": race.rounds,
-                "median_ratio": {c.name: race.median_ratio(c) for c in race.contenders},
-                "ratios": {c.name: race.ratios.get(c, []) for c in race.contenders},
-                "dropped_after": {c.name: n for c, n in race.dropped_after.items()},
-                "not_raced": race.not_raced_why,
-            },
-            "cpu_median_s": {r.candidate.name: r.cpu_median_s for r in results},
-        },
+        extra={"race": race.record(),
+               "cpu_median_s": {r.candidate.name: r.cpu_median_s for r in results}},  # fmt: skip
     )
 
 

@@ -104,6 +104,20 @@ class BackendSpec(BaseModel):
         return f"{self.kind.value}/{self.dtype.value}"
 
 
+def _check_request(kind: BackendKind, dtype_name: str, threads: int | None) -> None:
+    """``ConfigError`` for a request no runtime takes: threads below 1, ``auto`` (resolved
+    before a backend opens), ``mixed`` outside OpenVINO."""
+    if threads is not None and threads < 1:
+        raise ConfigError(f"--threads must be >= 1, got {threads}")
+    if kind is BackendKind.AUTO:
+        raise ConfigError("backend 'auto' is resolved by `kvtracker tune`'s choice before a "
+                          "backend opens: name torch, onnx or openvino here")
+    if dtype_name == ComputeDtype.MIXED.value and kind is not BackendKind.OPENVINO:
+        raise ConfigError(f"dtype 'mixed' is OpenVINO's per-graph precision; the {kind.value} "
+                          "backend takes float32 or bfloat16 (PyTorch's bf16 keeps its residual "
+                          "stream in fp32 already)")
+
+
 def open_backend(
     kind: BackendKind | str,
     weights: str | Path,
@@ -123,15 +137,7 @@ def open_backend(
         dtype_name = ComputeDtype(dtype).value
     except ValueError as exc:
         raise ConfigError(f"backend {kind!r} / dtype {dtype!r}: {exc}") from exc
-    if threads is not None and threads < 1:
-        raise ConfigError(f"--threads must be >= 1, got {threads}")
-    if kind is BackendKind.AUTO:
-        raise ConfigError("backend 'auto' is resolved by `kvtracker tune`'s choice before a "
-                          "backend opens: name torch, onnx or openvino here")
-    if dtype_name == ComputeDtype.MIXED.value and kind is not BackendKind.OPENVINO:
-        raise ConfigError(f"dtype 'mixed' is OpenVINO's per-graph precision; the {kind.value} "
-                          "backend takes float32 or bfloat16 (PyTorch's bf16 keeps its residual "
-                          "stream in fp32 already)")
+    _check_request(kind, dtype_name, threads)
     extra = dict(options or {})
     unknown = sorted(set(extra) - RUNTIME_OPTIONS[kind])
     if unknown:
