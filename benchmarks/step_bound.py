@@ -40,7 +40,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from benchmarks.auto_choice import _official_step
+from benchmarks.auto_choice import _cpu, _official_step
 from benchmarks.flops import tracking_step_flops
 from benchmarks.model_families import build_model
 from kvtracker_sdk.backends.autotune import synthetic_frames
@@ -143,13 +143,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1) + "\n")
     (RESULTS / f"{args.name}.md").write_text(_table(result))
     return result
-
-
-def _cpu() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.processor()
 
 
 def _table(result: dict[str, Any]) -> str:

@@ -366,17 +366,16 @@ def tune(
     reference_pass = _reference_pass(reference, images, problem)
     together = _fits_together(reference, list(groups)) if interleave is None else interleave
     measured = _Measurements()
-    timing = _Timing(reference_pass.queries, problem.heads, clock)
+    session = _Session(open_candidate, reference, reference_candidate.backend_key,
+                       reference_pass, _Timing(reference_pass.queries, problem.heads, clock),
+                       measured)  # fmt: skip
     try:
-        _measure_groups(open_candidate, groups, reference, reference_candidate.backend_key,
-                        reference_pass, timing, measured,
-                        together=together, seconds=seconds, min_rounds=min_rounds)  # fmt: skip
+        _measure_groups(session, groups, together=together, seconds=seconds,
+                        min_rounds=min_rounds)  # fmt: skip
         bound = _deviation_bound(candidates, measured)
         race = _Race(_contenders(candidates, measured, bound))
         if len(race.contenders) > 1 and race_seconds > 0:
-            _race(open_candidate, race, reference, reference_candidate.backend_key,
-                  reference_pass, timing, measured, together=together,
-                  seconds=race_seconds)  # fmt: skip
+            _race(session, race, together=together, seconds=race_seconds)
     finally:
         for live in measured.lives:
             if live.backend is not reference:
@@ -416,14 +415,31 @@ class _Timing:
     clock: TuneClock
 
 
+@dataclass(frozen=True)
+class _Session:
+    """What the measuring phases share: the opener, the reference backend (its group's key and
+    its pass) and the timing, and where the measurements go."""
+
+    open_candidate: Callable[[Candidate], Backend]
+    reference: Backend
+    reference_key: tuple[str, str, int | None]
+    reference_pass: _ReferencePass
+    timing: _Timing
+    measured: _Measurements
+
+    def live(self, backend: Backend, members: list[Candidate]) -> _Live:
+        """``backend`` serving ``members`` with the reference map's cache in its dtype."""
+        return _Live(backend, _backend_cache(self.reference_pass.cache, backend), members)
+
+    def close(self, backend: Backend) -> None:
+        """Close ``backend`` unless it is the reference (closed by ``tune`` at the end)."""
+        if backend is not self.reference:
+            backend.close()
+
+
 def _measure_groups(
-    open_candidate: Callable[[Candidate], Backend],
+    session: _Session,
     groups: dict[tuple[str, str, int | None], list[Candidate]],
-    reference: Backend,
-    reference_key: tuple[str, str, int | None],
-    reference_pass: _ReferencePass,
-    timing: _Timing,
-    measured: _Measurements,
     *,
     together: bool,
     seconds: float,
@@ -433,25 +449,24 @@ def _measure_groups(
     backend closed after), or, ``together``, every group in the same rounds (their backends left
     open in ``measured.lives`` for the caller to close). The reference backend is never closed
     here."""
+    timing, measured = session.timing, session.measured
     for key, members in groups.items():
-        if key == reference_key:
-            backend: Backend | None = reference
+        if key == session.reference_key:
+            backend: Backend | None = session.reference
         else:
-            backend = _open_group(open_candidate, key, members, measured)
+            backend = _open_group(session.open_candidate, key, members, measured)
         if backend is None:
             continue
-        live = _Live(backend, _backend_cache(reference_pass.cache, backend), members)
-        if not _measure_deviations(live, reference_pass, timing.heads, measured):
-            if backend is not reference:
-                backend.close()
+        live = session.live(backend, members)
+        if not _measure_deviations(live, session.reference_pass, timing.heads, measured):
+            session.close(backend)
             continue
         if together:
             measured.lives.append(live)
         else:
             _time_rounds([live], timing.frames, timing.heads, seconds / len(groups), min_rounds,
                          timing.clock, measured)  # fmt: skip
-            if backend is not reference:
-                backend.close()
+            session.close(backend)
     if together and measured.lives:
         _time_rounds(measured.lives, timing.frames, timing.heads, seconds, min_rounds,
                      timing.clock, measured)  # fmt: skip
@@ -604,39 +619,30 @@ def _contenders(
             if medians[c] <= best_median * within or fastest[c] <= best_fastest * within]  # fmt: skip
 
 
-def _race(
-    open_candidate: Callable[[Candidate], Backend],
-    race: _Race,
-    reference: Backend,
-    reference_key: tuple[str, str, int | None],
-    reference_pass: _ReferencePass,
-    timing: _Timing,
-    measured: _Measurements,
-    *,
-    together: bool,
-    seconds: float,
-) -> None:
+def _race(session: _Session, race: _Race, *, together: bool, seconds: float) -> None:
     """Time ``race.contenders`` in rounds of only them for up to ``seconds``. Their backends are
     still open when ``together``; else they are loaded again (added to ``measured.lives`` for
     the caller to close) when they fit in memory together, and not raced when they do not."""
+    timing, measured = session.timing, session.measured
     if together:
         entrants = [(live, c) for live in measured.lives for c in live.candidates
                     if c in race.contenders]  # fmt: skip
     else:
         keys = list(dict.fromkeys(c.backend_key for c in race.contenders))
-        if len(keys) > 1 and not _fits_together(reference, keys):
+        if len(keys) > 1 and not _fits_together(session.reference, keys):
             race.not_raced_why = "their runtimes do not fit in memory together"
             return
         entrants = []
         for key in keys:
             members = [c for c in race.contenders if c.backend_key == key]
             try:
-                backend = reference if key == reference_key else open_candidate(members[0])
+                backend = (session.reference if key == session.reference_key
+                           else session.open_candidate(members[0]))  # fmt: skip
             except Exception as exc:  # built once already; if not again, race the others
                 _log.warning("tune contender unavailable", candidate=key, error=str(exc)[:300])
                 continue
-            live = _Live(backend, _backend_cache(reference_pass.cache, backend), members)
-            if backend is not reference:
+            live = session.live(backend, members)
+            if backend is not session.reference:
                 measured.lives.append(live)
             for candidate in members:  # untimed: first-call work again
                 _step(live, candidate, timing.frames[0], timing.heads)
